@@ -1,0 +1,1 @@
+"""Subcommands of the `soma` CLI. Each module exposes ``register(subparsers)``."""

@@ -1,0 +1,78 @@
+"""Shared pytest fixtures.
+
+Every test that touches ROS gets its own rclpy Context and its own
+ROS_DOMAIN_ID with LOCALHOST discovery (the network rule), so tests never see
+each other's traffic and nothing leaves loopback.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared"
+
+# Set before anything can import rclpy or torch.
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+try:
+    import torch
+
+    torch.set_num_threads(1)
+except ImportError:  # pragma: no cover
+    pass
+
+
+@pytest.fixture
+def domain_id() -> int:
+    from soma_ros.nodes.testing import unique_domain_id
+
+    return unique_domain_id()
+
+
+@pytest.fixture
+def ros_env(domain_id):
+    """Environment for child processes: LOCALHOST discovery and this test's domain."""
+    from soma_ros.nodes.testing import ros_env as make_env
+
+    return make_env(domain_id)
+
+
+@pytest.fixture
+def ros_context(domain_id):
+    """An initialised rclpy Context on this test's domain, shut down afterwards."""
+    import rclpy
+    from rclpy.context import Context
+
+    os.environ["ROS_DOMAIN_ID"] = str(domain_id)
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    try:
+        yield ctx
+    finally:
+        if ctx.ok():
+            rclpy.shutdown(context=ctx)
+
+
+@pytest.fixture
+def ros_executor(ros_context):
+    from rclpy.executors import SingleThreadedExecutor
+
+    ex = SingleThreadedExecutor(context=ros_context)
+    try:
+        yield ex
+    finally:
+        ex.shutdown()
+
+
+@pytest.fixture(scope="session")
+def shared_dir() -> Path:
+    if not SHARED.is_dir():
+        pytest.skip(f"shared data folder not found at {SHARED}")
+    return SHARED
