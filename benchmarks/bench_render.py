@@ -1,0 +1,191 @@
+"""Benchmark of the splat renderer: forward and forward+backward time, peak RSS.
+
+Scene: a cloth-like object -- N splats on a wavy 0.3 m x 0.3 m sheet seen
+from 0.55 m so that it fills ~60% of the image, in-plane std ~0.8x the splat
+spacing (the sheet is fully covered, as a trained reconstruction is), thin
+along the normal, opacities in [0.5, 1]. Worst case for the rasterizer is
+dense coverage, which this is.
+
+Usage: ``python -m benchmarks.bench_render [--device cpu] [--repeats 5]``
+prints a table naming the machine; :func:`bench_render` returns the rows
+(used by ``soma bench core``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import platform
+import resource
+import time
+from typing import Optional, Sequence
+
+import torch
+
+from soma_ros.core.cameras import Cameras, look_at
+from soma_ros.core.geometry import covariance_from_scale_rot, quat_normalize
+from soma_ros.core.render import RenderConfig, render
+
+__all__ = ["bench_render", "make_bench_scene", "machine_description"]
+
+
+def make_bench_scene(n: int, width: int, height: int, device="cpu", seed: int = 0):
+    """(means [n,3], scales [n,3], quats [n,4], colors [n,3], opacities [n], cameras)."""
+    g = torch.Generator().manual_seed(seed)
+    side = 0.3
+    uv = (torch.rand(n, 2, generator=g) - 0.5) * side
+    h = 0.02 * torch.sin(uv[:, 0] * 25.0) * torch.cos(uv[:, 1] * 18.0)
+    means = torch.stack([uv[:, 0], uv[:, 1], h], dim=-1)
+    spacing = side / math.sqrt(n)
+    scales = torch.stack(
+        [
+            spacing * 0.8 * torch.exp(0.3 * torch.randn(n, generator=g)),
+            spacing * 0.8 * torch.exp(0.3 * torch.randn(n, generator=g)),
+            torch.full((n,), spacing * 0.1),
+        ],
+        dim=-1,
+    )
+    quats = quat_normalize(torch.tensor([1.0, 0.0, 0.0, 0.0]) + 0.15 * torch.randn(n, 4, generator=g))
+    colors = torch.rand(n, 3, generator=g)
+    opac = 0.5 + 0.5 * torch.rand(n, generator=g)
+    f = 0.8 * width
+    K = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+    c2w = look_at([0.0, -0.17, 0.36], [0.0, 0.0, 0.0], up=[0.0, 0.0, 1.0])
+    cams = Cameras.from_cam_to_world(K, c2w, width, height, names=["bench"])
+    return (means.to(device), scales.to(device), quats.to(device), colors.to(device),
+            opac.to(device), cams.to(device))
+
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def machine_description(device="cpu") -> str:
+    dev = str(device)
+    s = (f"{_cpu_model()} | {os.cpu_count()} cores | torch {torch.__version__} "
+         f"| torch threads {torch.get_num_threads()} | device {dev}")
+    if dev.startswith("cuda") and torch.cuda.is_available():
+        s += f" ({torch.cuda.get_device_name(torch.device(dev))})"
+    return s
+
+
+def _reset_peak_rss() -> bool:
+    try:  # Linux >= 4.0: writing 5 resets VmHWM of this process
+        with open(f"/proc/{os.getpid()}/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _peak_rss_mb() -> float:
+    try:
+        with open(f"/proc/{os.getpid()}/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _sync(device):
+    if str(device).startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def bench_render(
+    n_splats_list: Sequence[int] = (1000, 4000, 13000),
+    resolutions: Sequence[tuple[int, int]] = ((320, 240), (640, 480)),
+    device: str = "cpu",
+    repeats: int = 5,
+    cfg: Optional[RenderConfig] = None,
+    warmup: int = 1,
+) -> list[dict]:
+    """Time the renderer on :func:`make_bench_scene`; one row per (resolution, n).
+
+    Each row: n_splats, width, height, device, backend, fwd_ms / fwdbwd_ms
+    (median over ``repeats``, plus min), coverage (mean alpha), n_isect,
+    peak_rss_mb (process VmHWM reset before the row; whole-process figure).
+    """
+    cfg = cfg or RenderConfig()
+    rows = []
+    for (w, h) in resolutions:
+        for n in n_splats_list:
+            means, scales, quats, colors, opac, cams = make_bench_scene(n, w, h, device)
+            _reset_peak_rss()
+            fwd, fb = [], []
+            out = None
+            for i in range(warmup + repeats):
+                _sync(device)
+                t0 = time.perf_counter()
+                with torch.no_grad():
+                    covs = covariance_from_scale_rot(scales, quats)
+                    out = render(means, covs, colors, opac, cams, cfg=cfg)
+                _sync(device)
+                t1 = time.perf_counter()
+                m = means.clone().requires_grad_(True)
+                s = scales.clone().requires_grad_(True)
+                c = colors.clone().requires_grad_(True)
+                o = opac.clone().requires_grad_(True)
+                _sync(device)
+                t2 = time.perf_counter()
+                o2 = render(m, covariance_from_scale_rot(s, quats), c, o, cams, cfg=cfg)
+                loss = o2.rgb.square().sum() + o2.depth.sum()
+                loss.backward()
+                _sync(device)
+                t3 = time.perf_counter()
+                if i >= warmup:
+                    fwd.append((t1 - t0) * 1e3)
+                    fb.append((t3 - t2) * 1e3)
+            fwd.sort()
+            fb.sort()
+            rows.append(dict(
+                n_splats=n, width=w, height=h, device=str(device), backend=out.backend,
+                fwd_ms=fwd[len(fwd) // 2], fwd_min_ms=fwd[0],
+                fwdbwd_ms=fb[len(fb) // 2], fwdbwd_min_ms=fb[0],
+                coverage=float(out.alpha.mean()), n_isect=int(out.n_isect),
+                peak_rss_mb=_peak_rss_mb(),
+            ))
+    return rows
+
+
+def format_table(rows: list[dict]) -> str:
+    hdr = (f"{'res':>9} {'splats':>7} {'fwd ms':>8} {'(min)':>7} {'fwd+bwd ms':>11} {'(min)':>7} "
+           f"{'cover':>6} {'isect':>7} {'RSS MB':>7}")
+    lines = [hdr]
+    for r in rows:
+        lines.append(
+            f"{r['width']:>4}x{r['height']:<4} {r['n_splats']:>7} {r['fwd_ms']:>8.1f} {r['fwd_min_ms']:>7.1f} "
+            f"{r['fwdbwd_ms']:>11.1f} {r['fwdbwd_min_ms']:>7.1f} {r['coverage']:>6.2f} {r['n_isect']:>7} "
+            f"{r['peak_rss_mb']:>7.0f}"
+        )
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (CPU)")
+    ap.add_argument("--tile", type=int, default=RenderConfig.tile_size)
+    ap.add_argument("--splats", type=int, nargs="+", default=[1000, 4000, 13000])
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    print(machine_description(args.device))
+    rows = bench_render(n_splats_list=args.splats, device=args.device, repeats=args.repeats,
+                        cfg=RenderConfig(tile_size=args.tile))
+    print(f"renderer backend {rows[0]['backend']}, tile {args.tile}, median of {args.repeats}")
+    print(format_table(rows))
+
+
+if __name__ == "__main__":
+    main()

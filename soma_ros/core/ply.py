@@ -1,0 +1,382 @@
+"""Splat file I/O: standard 3DGS ``.ply`` and the 32-byte ``.splat`` layout.
+
+``.ply`` (what the reference 3DGS trainer and most tools write)
+--------------------------------------------------------------
+One ``vertex`` element, ``format binary_little_endian 1.0``, float32 properties::
+
+    x y z  nx ny nz  f_dc_0 f_dc_1 f_dc_2  f_rest_0 .. f_rest_{3K-1}
+    opacity  scale_0 scale_1 scale_2  rot_0 rot_1 rot_2 rot_3
+
+* ``f_rest_*`` are channel-major: ``f_rest[c * K + k]`` is band coefficient k
+  of colour channel c (3DGS writes ``features_rest.transpose(1, 2).flatten``),
+  so ``sh_rest [N, K, 3] = f_rest.reshape(N, 3, K).transpose(1, 2)``.
+* ``opacity`` is the logit of the [0, 1] opacity, ``scale_*`` the natural log
+  of the standard deviations, ``rot_*`` a (w, x, y, z) quaternion (normalised
+  on read), ``nx ny nz`` are unused (written as 0).
+* soma extras that round-trip: ``mass`` (kg) and ``attr_0 .. attr_{A-1}``.
+
+:func:`read_ply` also accepts ``binary_big_endian`` and ``ascii`` files, any
+numeric property types, and plain point clouds (``x y z`` with optional
+``red green blue``) which become isotropic splats
+(:meth:`Splats.from_points`). Errors name the missing properties.
+
+``.splat`` (antimatter15 web-viewer layout), 32 bytes per splat, little endian::
+
+    float32 x, y, z | float32 scale_0..2 (linear std devs) |
+    uint8 r, g, b, a (colour and opacity * 255) |
+    uint8 rot w, x, y, z encoded as clip(q * 128 + 128, 0, 255)
+
+Only SH degree 0 survives ``.splat``; mass and attrs are not stored.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+from typing import Optional, Union
+
+import numpy as np
+import torch
+
+from .splats import SH_C0, Splats, rgb_to_sh_dc
+
+__all__ = ["read_ply", "write_ply", "read_splat", "write_splat", "load_splats", "PlyError"]
+
+PathLike = Union[str, os.PathLike]
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1",
+    "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2",
+    "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4",
+    "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4",
+    "double": "f8", "float64": "f8",
+}
+
+_GS_REQUIRED = (
+    ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
+    + [f"scale_{i}" for i in range(3)]
+    + [f"rot_{i}" for i in range(4)]
+)
+_GS_MARKERS = ("f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+               "rot_0", "rot_1", "rot_2", "rot_3")
+
+
+class PlyError(ValueError):
+    """A .ply / .splat file that cannot be read as splats (message names the problem)."""
+
+
+# ------------------------------------------------------------------ PLY parsing
+def _parse_header(f, path):
+    first = f.readline()
+    if first.strip() != b"ply":
+        raise PlyError(f"{path}: not a PLY file (first line {first[:20]!r})")
+    fmt = None
+    elements = []  # list of (name, count, [(prop_name, dtype or ('list', ct, it))])
+    n_lines = 0
+    while True:
+        line = f.readline()
+        n_lines += 1
+        if not line:
+            raise PlyError(f"{path}: PLY header has no end_header")
+        if n_lines > 100000:
+            raise PlyError(f"{path}: PLY header too long")
+        tok = line.decode("ascii", errors="replace").strip().split()
+        if not tok:
+            continue
+        key = tok[0]
+        if key == "format":
+            if len(tok) < 2 or tok[1] not in ("ascii", "binary_little_endian", "binary_big_endian"):
+                raise PlyError(f"{path}: unsupported PLY format line {line.strip()!r}")
+            fmt = tok[1]
+        elif key in ("comment", "obj_info"):
+            continue
+        elif key == "element":
+            if len(tok) != 3:
+                raise PlyError(f"{path}: bad element line {line.strip()!r}")
+            elements.append((tok[1], int(tok[2]), []))
+        elif key == "property":
+            if not elements:
+                raise PlyError(f"{path}: property before any element")
+            if tok[1] == "list":
+                if len(tok) != 5 or tok[2] not in _PLY_TYPES or tok[3] not in _PLY_TYPES:
+                    raise PlyError(f"{path}: bad list property line {line.strip()!r}")
+                elements[-1][2].append((tok[4], ("list", _PLY_TYPES[tok[2]], _PLY_TYPES[tok[3]])))
+            else:
+                if len(tok) != 3 or tok[1] not in _PLY_TYPES:
+                    raise PlyError(f"{path}: unknown property type in {line.strip()!r}")
+                elements[-1][2].append((tok[2], _PLY_TYPES[tok[1]]))
+        elif key == "end_header":
+            break
+        else:
+            raise PlyError(f"{path}: unexpected PLY header line {line.strip()!r}")
+    if fmt is None:
+        raise PlyError(f"{path}: PLY header has no format line")
+    return fmt, elements
+
+
+def _read_vertex_table(path: PathLike) -> dict[str, np.ndarray]:
+    """Read the ``vertex`` element of a PLY file into {property name: [N] array}."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        fmt, elements = _parse_header(f, path)
+        names = [e[0] for e in elements]
+        if "vertex" not in names:
+            raise PlyError(f"{path}: PLY has no 'vertex' element (elements: {names})")
+        if fmt == "ascii":
+            for name, count, props in elements:
+                if name != "vertex":
+                    for _ in range(count):
+                        f.readline()
+                    continue
+                if any(isinstance(p[1], tuple) for p in props):
+                    raise PlyError(f"{path}: list properties in 'vertex' are not supported")
+                rows = [f.readline() for _ in range(count)]
+                if count and not rows[-1]:
+                    raise PlyError(f"{path}: ASCII PLY ends before {count} vertices were read")
+                data = np.loadtxt(rows, dtype=np.float64, ndmin=2) if count else np.zeros((0, len(props)))
+                if data.shape[1] != len(props):
+                    raise PlyError(f"{path}: ASCII vertex rows have {data.shape[1]} values, header says {len(props)}")
+                return {p[0]: data[:, i].astype(np.dtype(p[1])) for i, p in enumerate(props)}
+        endian = "<" if fmt == "binary_little_endian" else ">"
+        for name, count, props in elements:
+            if any(isinstance(p[1], tuple) for p in props):
+                if name == "vertex":
+                    raise PlyError(f"{path}: list properties in 'vertex' are not supported")
+                raise PlyError(
+                    f"{path}: element '{name}' with list properties precedes 'vertex' in a binary PLY"
+                )
+            dtype = np.dtype([(p[0], endian + p[1]) for p in props])
+            if name != "vertex":
+                f.seek(count * dtype.itemsize, os.SEEK_CUR)
+                continue
+            buf = f.read(count * dtype.itemsize)
+            if len(buf) != count * dtype.itemsize:
+                raise PlyError(
+                    f"{path}: truncated PLY: {count} vertices of {dtype.itemsize} bytes need "
+                    f"{count * dtype.itemsize} bytes, got {len(buf)}"
+                )
+            arr = np.frombuffer(buf, dtype=dtype, count=count)
+            return {p[0]: np.asarray(arr[p[0]]).astype(np.dtype(p[1]).newbyteorder("=")) for p in props}
+    raise PlyError(f"{path}: no vertex data")  # unreachable
+
+
+def _indexed(props: dict, prefix: str) -> list[str]:
+    pat = re.compile(re.escape(prefix) + r"(\d+)$")
+    found = sorted(((int(m.group(1)), k) for k in props for m in [pat.match(k)] if m))
+    idx = [i for i, _ in found]
+    if idx != list(range(len(idx))):
+        raise PlyError(f"'{prefix}*' properties are not numbered 0..{len(idx) - 1}: {idx}")
+    return [k for _, k in found]
+
+
+def _estimate_point_scale(xyz: np.ndarray) -> float:
+    """Median nearest-neighbour distance of a point cloud (isotropic splat size)."""
+    if xyz.shape[0] < 2:
+        return 0.005
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(xyz).query(xyz, k=2)
+    med = float(np.median(d[:, 1]))
+    return med if med > 0 else 0.005
+
+
+def read_ply(
+    path: PathLike,
+    dtype: torch.dtype = torch.float32,
+    point_scale: Optional[float] = None,
+    point_opacity: float = 0.9,
+) -> Splats:
+    """Read a 3DGS ``.ply`` (or a plain point-cloud ``.ply``) into :class:`Splats`.
+
+    Point clouds (``x y z`` [``red green blue``], no 3DGS properties) become
+    isotropic splats of std ``point_scale`` (default: the median nearest-neighbour
+    distance) and opacity ``point_opacity``; uchar colours are divided by 255,
+    ushort by 65535, float colours are taken as [0, 1].
+    """
+    props = _read_vertex_table(path)
+    missing_xyz = [k for k in ("x", "y", "z") if k not in props]
+    if missing_xyz:
+        raise PlyError(f"{path}: PLY vertex element lacks properties {missing_xyz}")
+    xyz = np.stack([props["x"], props["y"], props["z"]], axis=1).astype(np.float64)
+    n = xyz.shape[0]
+
+    def T(a):
+        return torch.as_tensor(np.ascontiguousarray(a), dtype=dtype)
+
+    is_gs = any(k in props for k in _GS_MARKERS)
+    if not is_gs:
+        if any(k in props for k in ("red", "green", "blue")):
+            miss = [k for k in ("red", "green", "blue") if k not in props]
+            if miss:
+                raise PlyError(f"{path}: point-cloud PLY colour lacks properties {miss}")
+            cols = []
+            for k in ("red", "green", "blue"):
+                a = props[k]
+                if a.dtype == np.uint8:
+                    cols.append(a / 255.0)
+                elif a.dtype == np.uint16:
+                    cols.append(a / 65535.0)
+                elif np.issubdtype(a.dtype, np.floating):
+                    cols.append(a.astype(np.float64))
+                else:
+                    cols.append(a / 255.0)
+            rgb = np.clip(np.stack(cols, axis=1), 0.0, 1.0)
+        else:
+            rgb = np.full((n, 3), 0.5)
+        scale = point_scale if point_scale is not None else _estimate_point_scale(xyz)
+        sp = Splats.from_points(T(xyz), T(rgb), scale=scale, opacity=point_opacity)
+        if "mass" in props:
+            sp.mass = T(props["mass"])
+        return sp
+
+    missing = [k for k in _GS_REQUIRED if k not in props]
+    if missing:
+        raise PlyError(f"{path}: 3DGS PLY lacks required properties {missing}")
+    rest_names = _indexed(props, "f_rest_")
+    if len(rest_names) % 3:
+        raise PlyError(f"{path}: number of f_rest_* properties ({len(rest_names)}) is not a multiple of 3")
+    k_rest = len(rest_names) // 3
+    if rest_names:
+        f_rest = np.stack([props[k] for k in rest_names], axis=1).astype(np.float64)
+        sh_rest = f_rest.reshape(n, 3, k_rest).transpose(0, 2, 1)
+    else:
+        sh_rest = np.zeros((n, 0, 3))
+    sh_dc = np.stack([props[f"f_dc_{i}"] for i in range(3)], axis=1)
+    logit = props["opacity"].astype(np.float64)
+    opac = 1.0 / (1.0 + np.exp(-logit))
+    scales = np.exp(np.stack([props[f"scale_{i}"] for i in range(3)], axis=1).astype(np.float64))
+    q = np.stack([props[f"rot_{i}"] for i in range(4)], axis=1).astype(np.float64)
+    qn = np.linalg.norm(q, axis=1, keepdims=True)
+    bad = qn[:, 0] < 1e-12
+    q = np.where(bad[:, None], np.array([1.0, 0.0, 0.0, 0.0]), q / np.where(qn > 0, qn, 1.0))
+    mass = T(props["mass"]) if "mass" in props else None
+    attr_names = _indexed(props, "attr_")
+    attrs = T(np.stack([props[k] for k in attr_names], axis=1)) if attr_names else None
+    return Splats(
+        means=T(xyz),
+        quats=T(q),
+        scales=T(scales),
+        opacities=T(opac),
+        sh_dc=T(sh_dc),
+        sh_rest=T(sh_rest),
+        mass=mass,
+        attrs=attrs,
+    )
+
+
+def write_ply(path: PathLike, splats: Splats, extras: bool = True) -> None:
+    """Write :class:`Splats` as a binary little-endian 3DGS ``.ply`` (float32).
+
+    ``extras``: also write ``mass`` and ``attr_*`` (ignored by other tools).
+    Opacities are clamped to [1e-7, 1 - 1e-7] before the logit (finite values).
+    """
+    n = len(splats)
+    sp = splats.detach().to("cpu")
+
+    def np64(t):
+        return t.detach().cpu().to(torch.float64).numpy()
+
+    k_rest = sp.sh_rest.shape[1]
+    cols: list[tuple[str, np.ndarray]] = []
+    xyz = np64(sp.means)
+    for i, k in enumerate("xyz"):
+        cols.append((k, xyz[:, i]))
+    for k in ("nx", "ny", "nz"):
+        cols.append((k, np.zeros(n)))
+    dc = np64(sp.sh_dc)
+    for i in range(3):
+        cols.append((f"f_dc_{i}", dc[:, i]))
+    rest = np64(sp.sh_rest).transpose(0, 2, 1).reshape(n, 3 * k_rest)  # channel-major
+    for i in range(3 * k_rest):
+        cols.append((f"f_rest_{i}", rest[:, i]))
+    o = np.clip(np64(sp.opacities), 1e-7, 1.0 - 1e-7)
+    cols.append(("opacity", np.log(o) - np.log1p(-o)))
+    sc = np64(sp.scales)
+    if (sc <= 0).any():
+        raise ValueError("write_ply: Splats.scales must be > 0 (stored as log)")
+    for i in range(3):
+        cols.append((f"scale_{i}", np.log(sc[:, i])))
+    q = np64(sp.quats)
+    for i in range(4):
+        cols.append((f"rot_{i}", q[:, i]))
+    if extras:
+        cols.append(("mass", np64(sp.mass)))
+        at = np64(sp.attrs)
+        for i in range(at.shape[1]):
+            cols.append((f"attr_{i}", at[:, i]))
+    dtype = np.dtype([(name, "<f4") for name, _ in cols])
+    arr = np.empty(n, dtype=dtype)
+    for name, v in cols:
+        arr[name] = v.astype(np.float32)
+    header = ["ply", "format binary_little_endian 1.0", "comment written by soma_ros",
+              f"element vertex {n}"]
+    header += [f"property float {name}" for name, _ in cols]
+    header.append("end_header")
+    path = Path(path)
+    with open(path, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        f.write(arr.tobytes())
+
+
+# ------------------------------------------------------------------ .splat
+_SPLAT_DTYPE = np.dtype([("pos", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
+assert _SPLAT_DTYPE.itemsize == 32
+
+
+def read_splat(path: PathLike, dtype: torch.dtype = torch.float32) -> Splats:
+    """Read a 32-byte-per-splat ``.splat`` file (layout in the module docstring)."""
+    path = Path(path)
+    raw = path.read_bytes()
+    if len(raw) % 32:
+        raise PlyError(f"{path}: .splat size {len(raw)} is not a multiple of 32 bytes")
+    arr = np.frombuffer(raw, dtype=_SPLAT_DTYPE)
+    rgba = arr["rgba"].astype(np.float64) / 255.0
+    q = (arr["rot"].astype(np.float64) - 128.0) / 128.0
+    qn = np.linalg.norm(q, axis=1, keepdims=True)
+    bad = qn[:, 0] < 1e-12
+    q = np.where(bad[:, None], np.array([1.0, 0.0, 0.0, 0.0]), q / np.where(qn > 0, qn, 1.0))
+
+    def T(a):
+        return torch.as_tensor(np.ascontiguousarray(a), dtype=dtype)
+
+    return Splats(
+        means=T(arr["pos"].astype(np.float64)),
+        quats=T(q),
+        scales=T(arr["scale"].astype(np.float64)),
+        opacities=T(rgba[:, 3]),
+        sh_dc=rgb_to_sh_dc(T(rgba[:, :3])),
+    )
+
+
+def write_splat(path: PathLike, splats: Splats) -> None:
+    """Write :class:`Splats` as a ``.splat`` file (SH degree 0, 8-bit colour/rotation)."""
+    sp = splats.detach().to("cpu")
+    n = len(sp)
+    arr = np.empty(n, dtype=_SPLAT_DTYPE)
+    arr["pos"] = sp.means.to(torch.float32).numpy()
+    arr["scale"] = sp.scales.to(torch.float32).numpy()
+    rgb = np.clip(0.5 + SH_C0 * sp.sh_dc.to(torch.float64).numpy(), 0.0, 1.0)
+    a = np.clip(sp.opacities.to(torch.float64).numpy(), 0.0, 1.0)
+    arr["rgba"] = np.round(np.concatenate([rgb, a[:, None]], axis=1) * 255.0).astype(np.uint8)
+    q = sp.quats.to(torch.float64).numpy()
+    qn = np.linalg.norm(q, axis=1, keepdims=True)
+    q = q / np.where(qn > 0, qn, 1.0)
+    arr["rot"] = np.clip(np.round(q * 128.0 + 128.0), 0, 255).astype(np.uint8)
+    Path(path).write_bytes(arr.tobytes())
+
+
+def load_splats(path: PathLike, dtype: torch.dtype = torch.float32) -> Splats:
+    """Load ``.ply`` or ``.splat`` by extension."""
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"splat file not found: {p}")
+    ext = p.suffix.lower()
+    if ext == ".ply":
+        return read_ply(p, dtype=dtype)
+    if ext == ".splat":
+        return read_splat(p, dtype=dtype)
+    raise PlyError(f"{p}: unknown splat file extension {ext!r} (expected .ply or .splat)")
