@@ -1,0 +1,148 @@
+"""Simulator checkpoints: one file that rebuilds the whole :class:`~.simulator.Simulator`.
+
+A checkpoint is a ``torch.save`` of a plain dict (loadable with
+``torch.load(weights_only=True)``: tensors, lists, dicts, strings, numbers):
+
+=================  ===================================================================
+key                content
+=================  ===================================================================
+format             "soma_ros.simulator/1"
+soma_ros_version   package version that wrote it
+model_config       :meth:`ModelConfig.to_dict` (hierarchy, graph, gnn, dynamics,
+                   normalizer sections and the effect list with parameters, including
+                   effects added after construction)
+state_dict         all parameters and buffers (network, effects, per-splat attributes,
+                   normaliser statistics)
+hierarchy          :meth:`Hierarchy.to_dict` (parents, rest positions, masses,
+                   thresholds) or None if the model was never bound
+graphs             :meth:`LevelGraphs.to_dict` (static edges) or None
+extra              caller's dict (training step, dataset name, metrics, ...)
+=================  ===================================================================
+
+:func:`save_checkpoint` is atomic: it writes a temporary file in the target
+folder, fsyncs it and ``os.replace`` s it over the target, so a reader never
+sees a partial file and a crash leaves the previous checkpoint intact.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Optional, Union
+
+import torch
+
+from soma_ros import __version__
+
+from .config import ModelConfig
+from .graph import LevelGraphs
+from .hierarchy import Hierarchy
+from .simulator import Simulator
+
+__all__ = ["CHECKPOINT_FORMAT", "save_checkpoint", "load_checkpoint", "read_checkpoint"]
+
+CHECKPOINT_FORMAT = "soma_ros.simulator/1"
+_SAFE_SCALARS = (str, int, float, bool, type(None))
+
+
+def _check_safe(value: Any, where: str) -> None:
+    """Raise TypeError unless ``value`` loads with ``torch.load(weights_only=True)``."""
+    if isinstance(value, _SAFE_SCALARS) or isinstance(value, torch.Tensor):
+        return
+    if isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            _check_safe(v, f"{where}[{i}]")
+        return
+    if isinstance(value, dict):
+        for k, v in value.items():
+            if not isinstance(k, (str, int)):
+                raise TypeError(f"{where}: dict keys must be str or int, got {type(k).__name__}")
+            _check_safe(v, f"{where}.{k}")
+        return
+    raise TypeError(
+        f"{where}: {type(value).__name__} cannot go into a checkpoint (use tensors, lists, dicts, str, numbers)"
+    )
+
+
+def save_checkpoint(path: Union[str, Path], simulator: Simulator, extra: Optional[dict] = None) -> Path:
+    """Write ``simulator`` (config, weights, normalisers, hierarchy, effects) to ``path`` atomically."""
+    path = Path(path)
+    extra = dict(extra or {})
+    _check_safe(extra, "extra")
+    cfg = simulator.config
+    cfg.effects = simulator.effects.specs
+    payload = {
+        "format": CHECKPOINT_FORMAT,
+        "soma_ros_version": __version__,
+        "model_config": cfg.to_dict(),
+        "state_dict": {k: v.detach().cpu().clone() for k, v in simulator.state_dict().items()},
+        "hierarchy": simulator.hierarchy.to_dict() if simulator.hierarchy is not None else None,
+        "graphs": simulator.graphs.to_dict() if simulator.graphs is not None else None,
+        "extra": extra,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(payload, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    try:  # make the rename durable
+        dfd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    except OSError:  # pragma: no cover - e.g. file systems without directory fsync
+        pass
+    return path
+
+
+def read_checkpoint(path: Union[str, Path], map_location: Union[str, torch.device] = "cpu") -> dict:
+    """The raw checkpoint dict (validated format), loaded with ``weights_only=True``."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # corrupted / not a torch file / unsafe content
+        raise ValueError(f"{path}: not a readable soma_ros checkpoint ({type(exc).__name__}: {exc})") from None
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        fmt = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
+        raise ValueError(f"{path}: not a soma_ros simulator checkpoint (format {fmt!r}, expected {CHECKPOINT_FORMAT!r})")
+    for key in ("model_config", "state_dict", "hierarchy", "graphs", "extra"):
+        if key not in payload:
+            raise ValueError(f"{path}: checkpoint misses {key!r}")
+    return payload
+
+
+def load_checkpoint(path: Union[str, Path], map_location: Union[str, torch.device] = "cpu") -> Simulator:
+    """Rebuild the :class:`Simulator` saved by :func:`save_checkpoint` (only the file is needed).
+
+    The extra dict is available as ``simulator.checkpoint_extra``.
+    """
+    payload = read_checkpoint(path, map_location)
+    cfg = ModelConfig.from_dict(payload["model_config"], f"{Path(path).name}: model_config.")
+    sim = Simulator(cfg)
+    state = payload["state_dict"]
+    if payload["hierarchy"] is not None:
+        hier = Hierarchy.from_dict(payload["hierarchy"])
+        graphs = LevelGraphs.from_dict(payload["graphs"]) if payload["graphs"] is not None else None
+        sim.bind_hierarchy(hier, graphs)
+    missing, unexpected = sim.load_state_dict(state, strict=False)
+    if missing or unexpected:
+        raise ValueError(
+            f"{path}: checkpoint does not match its model config (missing {sorted(missing)[:5]}, "
+            f"unexpected {sorted(unexpected)[:5]})"
+        )
+    sim.to(map_location)
+    sim.checkpoint_extra = payload["extra"]
+    return sim

@@ -1,0 +1,478 @@
+"""Model configuration: dataclasses loaded from YAML (``config/models/*.yaml``).
+
+A :class:`ModelConfig` has one section per part of the simulator:
+
+=============  =====================================================================
+section        what it configures
+=============  =====================================================================
+hierarchy      distance thresholds of the cluster levels (:mod:`.hierarchy`)
+graph          per-level kNN graphs: k, radii, dynamic edges (:mod:`.graph`)
+gnn            the shared hierarchical mesh graph network (:mod:`.gnn`)
+dynamics       feature scales and the numerical-safety bounds of the step
+normalizer     feature normalisers: fixed, or fitted from data then frozen
+effects        the force terms, by registry name with parameters (:mod:`.effects`)
+=============  =====================================================================
+
+An object config (``config/objects/*.yaml``, :class:`ObjectConfig`) carries the
+per-object hierarchy thresholds (and optionally graph radii);
+``load_model_config("cpu", object="rope")`` merges it into the model config.
+
+Loading is strict: an unknown key, a wrong type or a bad value raises
+:class:`ConfigError` (a ``ValueError``) naming the key path, e.g.
+``gnn.latent: expected int, got 'big'``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Optional, Union
+
+import yaml
+
+from soma_ros.paths import resolve_config
+
+__all__ = [
+    "ConfigError",
+    "HierarchyConfig",
+    "GraphConfig",
+    "GNNConfig",
+    "DynamicsConfig",
+    "NormalizerConfig",
+    "EffectSpec",
+    "ModelConfig",
+    "ObjectConfig",
+    "load_model_config",
+    "load_object_config",
+    "from_dict",
+    "to_dict",
+]
+
+
+class ConfigError(ValueError):
+    """A config value that cannot be used; the message names the key path."""
+
+
+# --------------------------------------------------------------------------- sections
+@dataclass
+class HierarchyConfig:
+    """Cluster levels above the splats (a root node is always added on top).
+
+    ``thresholds[i]`` is the complete-linkage diameter (metres) of cluster level
+    i + 1: every two members of one cluster are at most this far apart (see
+    :func:`soma_ros.core.hierarchy.complete_linkage_clusters`). Increasing.
+    ``seed_fraction`` is the radius of the ball-cover seeds as a fraction of the
+    threshold (<= 0.5 so that a seed alone respects the threshold).
+    """
+
+    thresholds: list[float] = field(default_factory=lambda: [0.02, 0.2])
+    seed_fraction: float = 0.25
+
+    def validate(self, where: str = "hierarchy") -> None:
+        if not self.thresholds:
+            raise ConfigError(f"{where}.thresholds: need at least one cluster level")
+        prev = 0.0
+        for i, t in enumerate(self.thresholds):
+            if not (math.isfinite(t) and t > prev):
+                raise ConfigError(
+                    f"{where}.thresholds[{i}]: thresholds must be finite, > 0 and increasing, "
+                    f"got {self.thresholds}"
+                )
+            prev = t
+        if not (0.0 < self.seed_fraction <= 0.5):
+            raise ConfigError(f"{where}.seed_fraction: must lie in (0, 0.5], got {self.seed_fraction}")
+
+    @property
+    def num_levels(self) -> int:
+        """Levels including splats (level 0) and the root (last level)."""
+        return len(self.thresholds) + 2
+
+
+@dataclass
+class GraphConfig:
+    """Per-level graphs: kNN (k) filtered by a radius.
+
+    ``radii`` has one radius per level, splats first, root last (the public
+    SoMA code uses [0.03, 0.2, 0.5, 5.0]); the splat-level radius is used only
+    where a splat-level graph is asked for. ``dynamic_edges`` adds, at every
+    cluster level, the current-shape kNN pairs within ``dynamic_radii`` (default:
+    ``radii``) that are not static edges; they are recomputed every
+    ``dynamic_every`` steps (1 = every step). ``knn_backend``: "auto" (scipy
+    cKDTree for CPU tensors, chunked torch cdist on CUDA), "scipy" or "torch".
+    """
+
+    k: int = 16
+    radii: list[float] = field(default_factory=lambda: [0.03, 0.2, 0.5, 5.0])
+    dynamic_edges: bool = True
+    dynamic_radii: Optional[list[float]] = None
+    dynamic_every: int = 1
+    knn_backend: str = "auto"
+
+    def validate(self, num_levels: int, where: str = "graph") -> None:
+        if self.k < 1:
+            raise ConfigError(f"{where}.k: must be >= 1, got {self.k}")
+        for name in ("radii", "dynamic_radii"):
+            r = getattr(self, name)
+            if r is None:
+                continue
+            if len(r) != num_levels:
+                raise ConfigError(
+                    f"{where}.{name}: need one radius per level ({num_levels}: splats, "
+                    f"{num_levels - 2} cluster level(s), root), got {len(r)}"
+                )
+            if any(not (math.isfinite(x) and x > 0) for x in r):
+                raise ConfigError(f"{where}.{name}: radii must be finite and > 0, got {r}")
+        if self.dynamic_every < 1:
+            raise ConfigError(f"{where}.dynamic_every: must be >= 1, got {self.dynamic_every}")
+        if self.knn_backend not in ("auto", "scipy", "torch"):
+            raise ConfigError(f"{where}.knn_backend: one of auto, scipy, torch; got {self.knn_backend!r}")
+
+
+@dataclass
+class GNNConfig:
+    """The hierarchical mesh graph network (weights shared across levels).
+
+    ``latent`` x ``layers`` message-passing blocks (paper: 128 x 16), each MLP
+    with ``mlp_hidden_layers`` hidden layers and SiLU; ``layer_norm`` applies a
+    pre-LayerNorm to node and edge latents in every block. ``attr_dim`` learned
+    per-splat attributes (paper: 5). ``top_down_latent`` adds the anchor's final
+    latent to a node's encoding (coarse-to-fine information flow).
+    ``edge_updates``: MeshGraphNets edge-latent residual stream (paper); off =
+    edges keep their encoding and messages are recomputed from it in every
+    block (about half the per-edge work; the ``cpu`` model).
+    ``splat_head``: decode per-splat updates with a light MLP on [splat
+    encoding, anchor latent] (paper); off = splats are moved only by their
+    anchors' deformation. ``out_init_scale`` multiplies the initial weights of
+    the last decoder layer (small: a fresh model responds gently).
+    """
+
+    latent: int = 128
+    layers: int = 16
+    mlp_hidden_layers: int = 1
+    layer_norm: bool = True
+    edge_updates: bool = True
+    attr_dim: int = 5
+    top_down_latent: bool = True
+    splat_head: bool = False
+    out_init_scale: float = 0.1
+
+    def validate(self, where: str = "gnn") -> None:
+        if self.latent < 1 or self.layers < 0 or self.mlp_hidden_layers < 0 or self.attr_dim < 0:
+            raise ConfigError(
+                f"{where}: latent >= 1, layers >= 0, mlp_hidden_layers >= 0, attr_dim >= 0 required; got "
+                f"latent={self.latent} layers={self.layers} mlp_hidden_layers={self.mlp_hidden_layers} "
+                f"attr_dim={self.attr_dim}"
+            )
+        if not (self.out_init_scale >= 0 and math.isfinite(self.out_init_scale)):
+            raise ConfigError(f"{where}.out_init_scale: must be finite and >= 0, got {self.out_init_scale}")
+
+
+@dataclass
+class DynamicsConfig:
+    """Feature scales and numerical-safety bounds of one simulator step.
+
+    ``accel_scale`` (m/s^2) divides acceleration/force-per-mass features and
+    multiplies the acceleration head; ``velocity_scale`` (m/s) divides velocity
+    features. Bounds (see :mod:`.simulator`): a node's velocity relative to its
+    anchor is at most ``max_speed`` m/s; each log singular value of a per-step
+    deformation is at most ``max_log_stretch`` before centring (so |log s| <=
+    2 max_log_stretch after); a node's residual offset from the position its
+    anchor carries it to is at most ``residual_factor`` x its anchor's rest
+    radius.
+    """
+
+    accel_scale: float = 9.81
+    velocity_scale: float = 1.0
+    max_speed: float = 2.0
+    max_log_stretch: float = 0.25
+    residual_factor: float = 2.0
+
+    def validate(self, where: str = "dynamics") -> None:
+        for name in ("accel_scale", "velocity_scale", "max_speed", "max_log_stretch", "residual_factor"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ConfigError(f"{where}.{name}: must be finite and > 0, got {v}")
+
+
+@dataclass
+class NormalizerConfig:
+    """Feature normalisers. ``fixed``: identity (features are pre-scaled by
+    physical scales). ``fit``: running mean/std accumulated in training mode
+    over the first ``max_count`` rows, then frozen; stored in checkpoints."""
+
+    mode: str = "fixed"
+    max_count: int = 1_000_000
+    eps: float = 1e-6
+
+    def validate(self, where: str = "normalizer") -> None:
+        if self.mode not in ("fixed", "fit"):
+            raise ConfigError(f"{where}.mode: one of fixed, fit; got {self.mode!r}")
+        if self.max_count < 1 or not self.eps > 0:
+            raise ConfigError(f"{where}: max_count >= 1 and eps > 0 required")
+
+
+@dataclass
+class EffectSpec:
+    """One force term: registry ``name``, instance ``key`` (default: name),
+    ``trainable`` (False freezes its parameters) and its ``params``.
+
+    In YAML an effect is a mapping whose other keys are the params::
+
+        - name: support
+          tau: 0.01
+    """
+
+    name: str
+    key: Optional[str] = None
+    trainable: bool = True
+    params: dict = field(default_factory=dict)
+
+    @property
+    def instance_key(self) -> str:
+        return self.key or self.name
+
+    @staticmethod
+    def parse(item: Union[str, Mapping[str, Any], "EffectSpec"], where: str = "effects") -> "EffectSpec":
+        if isinstance(item, EffectSpec):
+            return item
+        if isinstance(item, str):
+            return EffectSpec(name=item)
+        if not isinstance(item, Mapping):
+            raise ConfigError(f"{where}: an effect is a name or a mapping with 'name', got {item!r}")
+        d = dict(item)
+        if "name" not in d:
+            raise ConfigError(f"{where}: effect mapping without 'name': {item!r}")
+        name = d.pop("name")
+        key = d.pop("key", None)
+        trainable = d.pop("trainable", True)
+        params = dict(d.pop("params", {}) or {})
+        params.update(d)
+        if not isinstance(name, str) or (key is not None and not isinstance(key, str)):
+            raise ConfigError(f"{where}: 'name' and 'key' must be strings, got {item!r}")
+        if not isinstance(trainable, bool):
+            raise ConfigError(f"{where}.trainable: expected bool, got {trainable!r}")
+        return EffectSpec(name=name, key=key, trainable=trainable, params=params)
+
+    def to_yaml_dict(self) -> dict:
+        d: dict[str, Any] = {"name": self.name}
+        if self.key is not None:
+            d["key"] = self.key
+        if not self.trainable:
+            d["trainable"] = False
+        d.update(self.params)
+        return d
+
+
+def _default_effects() -> list[EffectSpec]:
+    return [EffectSpec("gravity"), EffectSpec("support"), EffectSpec("robot")]
+
+
+@dataclass
+class ModelConfig:
+    """The whole simulator configuration (see module docstring)."""
+
+    name: str = "custom"
+    hierarchy: HierarchyConfig = field(default_factory=HierarchyConfig)
+    graph: GraphConfig = field(default_factory=GraphConfig)
+    gnn: GNNConfig = field(default_factory=GNNConfig)
+    dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
+    normalizer: NormalizerConfig = field(default_factory=NormalizerConfig)
+    effects: list[EffectSpec] = field(default_factory=_default_effects)
+
+    def validate(self) -> "ModelConfig":
+        self.hierarchy.validate()
+        self.graph.validate(self.hierarchy.num_levels)
+        self.gnn.validate()
+        self.dynamics.validate()
+        self.normalizer.validate()
+        keys = [e.instance_key for e in self.effects]
+        dup = sorted({k for k in keys if keys.count(k) > 1})
+        if dup:
+            raise ConfigError(f"effects: duplicate effect keys {dup} (give one of them a 'key')")
+        return self
+
+    @property
+    def num_levels(self) -> int:
+        return self.hierarchy.num_levels
+
+    def to_dict(self) -> dict:
+        d = to_dict(self)
+        d["effects"] = [e.to_yaml_dict() for e in self.effects]
+        return d
+
+    @staticmethod
+    def from_dict(data: Mapping[str, Any], where: str = "") -> "ModelConfig":
+        data = dict(data)
+        effects = data.pop("effects", None)
+        cfg = from_dict(ModelConfig, data, where)
+        if effects is not None:
+            if not isinstance(effects, list):
+                raise ConfigError(f"{where}effects: expected a list, got {type(effects).__name__}")
+            cfg.effects = [EffectSpec.parse(e, f"{where}effects[{i}]") for i, e in enumerate(effects)]
+        return cfg.validate()
+
+
+@dataclass
+class ObjectConfig:
+    """Per-object settings (``config/objects/<name>.yaml``)."""
+
+    name: str
+    description: str = ""
+    total_mass: float = 0.1
+    hierarchy: HierarchyConfig = field(default_factory=HierarchyConfig)
+    graph_radii: Optional[list[float]] = None
+
+    def validate(self) -> "ObjectConfig":
+        self.hierarchy.validate(f"object {self.name}: hierarchy")
+        if not (math.isfinite(self.total_mass) and self.total_mass > 0):
+            raise ConfigError(f"object {self.name}: total_mass must be > 0, got {self.total_mass}")
+        if self.graph_radii is not None:
+            GraphConfig(radii=list(self.graph_radii)).validate(
+                self.hierarchy.num_levels, f"object {self.name}: graph_radii"
+            )
+        return self
+
+
+# --------------------------------------------------------------------------- generic (de)serialisation
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", str(tp))
+
+
+def _convert(value: Any, tp: Any, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if tp is Any:
+        return value
+    if origin is Union:
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _convert(value, a, where)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError(errors[0] if errors else f"{where}: bad value {value!r}")
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{where}: expected a mapping for {_type_name(tp)}, got {value!r}")
+        return from_dict(tp, value, f"{where}.")
+    if origin in (list, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        item_tp = args[0] if args else Any
+        return [_convert(v, item_tp, f"{where}[{i}]") for i, v in enumerate(value)]
+    if origin is dict or tp is dict:
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{where}: expected a mapping, got {value!r}")
+        return dict(value)
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: expected bool, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: expected int, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where}: expected float, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected str, got {value!r}")
+        return value
+    return value
+
+
+def from_dict(cls: type, data: Mapping[str, Any], where: str = "") -> Any:
+    """Build dataclass ``cls`` from a mapping; unknown keys and bad types raise ConfigError."""
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{where or cls.__name__}: expected a mapping, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ConfigError(
+            f"{where}{unknown[0]}: unknown key for {cls.__name__} (known: {', '.join(sorted(names))})"
+        )
+    kwargs = {k: _convert(v, hints[k], f"{where}{k}") for k, v in data.items()}
+    try:
+        return cls(**kwargs)
+    except TypeError as exc:  # missing required field
+        raise ConfigError(f"{where.rstrip('.') or cls.__name__}: {exc}") from None
+
+
+def to_dict(obj: Any) -> Any:
+    """Dataclass -> plain dict/list/scalars (YAML- and torch.load(weights_only)-safe)."""
+    if dataclasses.is_dataclass(obj):
+        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, (list, tuple)):
+        return [to_dict(v) for v in obj]
+    if isinstance(obj, dict):
+        return {str(k): to_dict(v) for k, v in obj.items()}
+    return obj
+
+
+def _read_yaml(path: Path) -> dict:
+    try:
+        with open(path) as f:
+            data = yaml.safe_load(f)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: invalid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level")
+    return data
+
+
+def _resolve(name_or_path: Union[str, Path], folder: str) -> Path:
+    p = Path(name_or_path)
+    if p.suffix in (".yaml", ".yml") and p.is_file():
+        return p
+    try:
+        return resolve_config(f"{folder}/{name_or_path}")
+    except FileNotFoundError:
+        return resolve_config(name_or_path)
+
+
+def load_object_config(name_or_path: Union[str, Path]) -> ObjectConfig:
+    """``config/objects/<name>.yaml`` (or a path) -> :class:`ObjectConfig`."""
+    path = _resolve(name_or_path, "objects")
+    data = _read_yaml(path)
+    data.setdefault("name", path.stem)
+    return from_dict(ObjectConfig, data, f"{path.name}: ").validate()
+
+
+def load_model_config(
+    name_or_path: Union[str, Path, Mapping[str, Any]] = "cpu",
+    object: Union[None, str, Path, ObjectConfig] = None,  # noqa: A002 - the natural name
+) -> ModelConfig:
+    """Model config by name (``config/models/<name>.yaml``), path, or mapping.
+
+    With ``object`` (name, path or :class:`ObjectConfig`) the object's
+    hierarchy thresholds (and graph radii, if it sets them) replace the model's.
+    """
+    if isinstance(name_or_path, Mapping):
+        cfg = ModelConfig.from_dict(name_or_path)
+    else:
+        path = _resolve(name_or_path, "models")
+        data = _read_yaml(path)
+        data.setdefault("name", path.stem)
+        cfg = ModelConfig.from_dict(data, f"{path.name}: ")
+    if object is not None:
+        obj = object if isinstance(object, ObjectConfig) else load_object_config(object)
+        cfg.hierarchy = dataclasses.replace(obj.hierarchy, thresholds=list(obj.hierarchy.thresholds))
+        if obj.graph_radii is not None:
+            cfg.graph.radii = list(obj.graph_radii)
+        if cfg.graph.dynamic_radii is not None and len(cfg.graph.dynamic_radii) != cfg.num_levels:
+            raise ConfigError(
+                f"object {obj.name} has {cfg.num_levels} levels but graph.dynamic_radii has "
+                f"{len(cfg.graph.dynamic_radii)} entries"
+            )
+        cfg.validate()
+    return cfg

@@ -1,0 +1,449 @@
+"""Force terms ("effects") acting on the splats, in a registry.
+
+Each effect is an ``nn.Module`` registered by name with
+:func:`register_effect`; a model config lists its effects by name with
+parameters (:class:`soma_ros.core.config.EffectSpec`) and
+:func:`build_effects` turns the list into an :class:`EffectSet`. New effects
+are config-addable: adding ``{name: wind}`` to a trained model adds a zero
+force whose parameters can then be fitted alone (the discrepancy workflow).
+
+Contract: ``effect(ctx: EffectContext) -> Tensor[N, 3]``, the force in newtons
+on each of the N splats (the finest level). The simulator sums the forces of
+all effects per splat and aggregates them bottom-up through the hierarchy as
+**sums per cluster** (Newton: the net external force on a cluster is the sum
+over its members); the network then sees each node's force per unit mass,
+F_cluster / m_cluster, i.e. the mass-weighted mean of its members'
+accelerations.
+
+``in_reference``: effects that define the static equilibrium of the initial
+state (gravity and support). The simulator evaluates the network once at the
+initial state under these forces only and subtracts that response from every
+step (see :mod:`.simulator`); all other effects (robot, wind, drag) act as
+deviations from it.
+
+Built-in effects (parameters in brackets, * = learnable):
+
+==================  ===========================================================
+gravity             m g, g from the scene [scale]
+support             m w(d) (gain* max(0, -g.n) + k* max(0, -d)) n: within tau of
+                    the table plane (signed distance d < tau) a support that
+                    carries the splat's weight (gain 1 cancels gravity's normal
+                    part at contact), plus a penalty k (1/s^2) on penetration;
+                    w = 1 at d <= 0 falling smoothly to 0 at d = tau [tau, gain*,
+                    stiffness*]
+robot               graph module: edges from each robot control point to its
+                    ``max_neighbors`` nearest splats within ``radius`` (kNN
+                    filtered by radius, like the level graphs; the cap bounds
+                    the cost on dense objects: 30 points x 64 <= 1,920 edges,
+                    where a 5 cm ball can hold thousands of splats); edge
+                    features = relative position,
+                    distance, gripper state c_t, control-point velocity, relative
+                    velocity, splat attributes; messages (smoothly cut off at the
+                    radius) summed per splat and decoded to a force. Exactly zero
+                    for splats with no control point in range [radius,
+                    max_neighbors, hidden*, layers]
+wind                constant acceleration field m a, a learnable, zero-init [accel*]
+linear_drag         -b m v [coeff*]
+quadratic_drag      -c m |v| v [coeff*]
+==================  ===========================================================
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Callable, ClassVar, Iterable, Optional, Union
+
+import torch
+from torch import nn
+
+from .config import ConfigError, EffectSpec, from_dict
+
+__all__ = [
+    "EffectContext",
+    "Effect",
+    "EFFECTS",
+    "register_effect",
+    "build_effect",
+    "build_effects",
+    "EffectSet",
+    "known_effects",
+]
+
+
+# ----------------------------------------------------------------------------- context
+@dataclass
+class EffectContext:
+    """What an effect may look at, on the splat level (N splats, P control points).
+
+    =====================  =========  =================================================
+    field                  shape      meaning
+    =====================  =========  =================================================
+    positions              [N, 3]     splat positions x_t, m
+    velocities             [N, 3]     (x_t - x_{t-1}) / dt, m/s
+    masses                 [N]        kg
+    attrs                  [N, A]     learned per-splat attributes
+    gravity                [3]        m/s^2
+    plane_normal           [3]        unit normal of the table plane, pointing to the
+                                      object side (against gravity)
+    plane_offset           []         d of the plane n.x + d = 0 (signed distance n.x+d)
+    dt                     float      step, s
+    control_points         [P, 3]     robot control points at t (or None: no robot)
+    control_velocities     [P, 3]     their velocities, m/s (or None)
+    gripper                []         gripper state c_t in [0, 1] (or None)
+    =====================  =========  =================================================
+    """
+
+    positions: torch.Tensor
+    velocities: torch.Tensor
+    masses: torch.Tensor
+    attrs: torch.Tensor
+    gravity: torch.Tensor
+    plane_normal: torch.Tensor
+    plane_offset: torch.Tensor
+    dt: float
+    control_points: Optional[torch.Tensor] = None
+    control_velocities: Optional[torch.Tensor] = None
+    gripper: Optional[torch.Tensor] = None
+
+    def __post_init__(self) -> None:
+        n = self.positions.shape[0]
+        if self.positions.ndim != 2 or self.positions.shape[1] != 3:
+            raise ValueError(f"EffectContext.positions must be [N, 3], got {list(self.positions.shape)}")
+        if tuple(self.velocities.shape) != (n, 3) or tuple(self.masses.shape) != (n,):
+            raise ValueError("EffectContext: velocities must be [N, 3] and masses [N]")
+        if self.attrs.ndim != 2 or self.attrs.shape[0] != n:
+            raise ValueError(f"EffectContext.attrs must be [N, A], got {list(self.attrs.shape)}")
+        if tuple(self.gravity.shape) != (3,) or tuple(self.plane_normal.shape) != (3,):
+            raise ValueError("EffectContext: gravity and plane_normal must be [3]")
+        if self.control_points is not None:
+            if self.control_points.ndim != 2 or self.control_points.shape[1] != 3:
+                raise ValueError(f"EffectContext.control_points must be [P, 3], got {list(self.control_points.shape)}")
+            if self.control_velocities is None or self.control_velocities.shape != self.control_points.shape:
+                raise ValueError("EffectContext.control_velocities must be [P, 3] with control_points")
+            if self.gripper is None or self.gripper.numel() != 1:
+                raise ValueError("EffectContext.gripper must be a scalar tensor with control_points")
+
+    @property
+    def num_nodes(self) -> int:
+        return int(self.positions.shape[0])
+
+    def signed_distance(self) -> torch.Tensor:
+        """[N] signed distance to the table plane (> 0 on the object side), m."""
+        return self.positions @ self.plane_normal + self.plane_offset
+
+
+# ----------------------------------------------------------------------------- registry
+EFFECTS: dict[str, type["Effect"]] = {}
+
+
+def register_effect(name: str) -> Callable[[type["Effect"]], type["Effect"]]:
+    """Class decorator: register an :class:`Effect` subclass under ``name``."""
+
+    def deco(cls: type["Effect"]) -> type["Effect"]:
+        if not (isinstance(cls, type) and issubclass(cls, Effect)):
+            raise TypeError(f"register_effect({name!r}): {cls!r} is not an Effect subclass")
+        if name in EFFECTS and EFFECTS[name] is not cls:
+            raise ValueError(f"register_effect: an effect named {name!r} is already registered")
+        if not dataclasses.is_dataclass(cls.Params):
+            raise TypeError(f"register_effect({name!r}): {cls.__name__}.Params must be a dataclass")
+        cls.name = name
+        EFFECTS[name] = cls
+        return cls
+
+    return deco
+
+
+def known_effects() -> list[str]:
+    return sorted(EFFECTS)
+
+
+class Effect(nn.Module):
+    """Base class. Subclasses define ``Params`` (a dataclass) and ``forward(ctx) -> [N, 3]``."""
+
+    name: ClassVar[str] = ""
+    in_reference: ClassVar[bool] = False
+
+    @dataclass
+    class Params:
+        pass
+
+    def __init__(self, params, *, attr_dim: int = 0) -> None:
+        super().__init__()
+        self.params = params
+        self.attr_dim = int(attr_dim)
+
+    def forward(self, ctx: EffectContext) -> torch.Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def extra_repr(self) -> str:
+        return ", ".join(f"{f.name}={getattr(self.params, f.name)!r}" for f in dataclasses.fields(self.params))
+
+
+def build_effect(spec: Union[EffectSpec, str, dict], attr_dim: int = 0) -> Effect:
+    """One effect from its spec; unknown names/params raise :class:`ConfigError` listing the known ones."""
+    spec = EffectSpec.parse(spec)
+    cls = EFFECTS.get(spec.name)
+    if cls is None:
+        raise ConfigError(f"unknown effect {spec.name!r}; known effects: {', '.join(known_effects())}")
+    params = from_dict(cls.Params, spec.params, f"effect {spec.instance_key}: ")
+    eff = cls(params, attr_dim=attr_dim)
+    if not spec.trainable:
+        eff.requires_grad_(False)
+    return eff
+
+
+class EffectSet(nn.Module):
+    """An ordered set of effect instances (keyed by ``EffectSpec.instance_key``)."""
+
+    def __init__(self, specs: Iterable[Union[EffectSpec, str, dict]] = (), attr_dim: int = 0) -> None:
+        super().__init__()
+        self.attr_dim = int(attr_dim)
+        self.terms = nn.ModuleDict()
+        self._specs: dict[str, EffectSpec] = {}
+        for s in specs:
+            self.add(s)
+
+    def add(self, spec: Union[EffectSpec, str, dict]) -> Effect:
+        spec = EffectSpec.parse(spec)
+        key = spec.instance_key
+        if key in self.terms:
+            raise ConfigError(f"effect key {key!r} is already present (present: {', '.join(self.terms)})")
+        eff = build_effect(spec, self.attr_dim)
+        self.terms[key] = eff
+        self._specs[key] = dataclasses.replace(spec, params=dict(spec.params))
+        return eff
+
+    def remove(self, key: str) -> None:
+        if key not in self.terms:
+            raise KeyError(f"no effect {key!r} (present: {', '.join(self.terms)})")
+        del self.terms[key]
+        del self._specs[key]
+
+    @property
+    def specs(self) -> list[EffectSpec]:
+        return [self._specs[k] for k in self.terms]
+
+    def keys(self) -> list[str]:
+        return list(self.terms.keys())
+
+    def __getitem__(self, key: str) -> Effect:
+        return self.terms[key]
+
+    def __contains__(self, key: str) -> bool:
+        return key in self.terms
+
+    def forward(self, ctx: EffectContext, reference_only: bool = False) -> torch.Tensor:
+        """Total force [N, 3] (newtons); ``reference_only`` sums the in-reference effects only."""
+        total = ctx.positions.new_zeros((ctx.num_nodes, 3))
+        for key, eff in self.terms.items():
+            if reference_only and not eff.in_reference:
+                continue
+            f = eff(ctx)
+            if tuple(f.shape) != (ctx.num_nodes, 3):
+                raise RuntimeError(f"effect {key!r} returned shape {list(f.shape)}, expected [{ctx.num_nodes}, 3]")
+            total = total + f
+        return total
+
+    def per_term(self, ctx: EffectContext) -> dict[str, torch.Tensor]:
+        """Force [N, 3] of every effect, by key."""
+        return {k: e(ctx) for k, e in self.terms.items()}
+
+
+def build_effects(specs: Iterable[Union[EffectSpec, str, dict]], attr_dim: int = 0) -> EffectSet:
+    """An :class:`EffectSet` from names / mappings / :class:`EffectSpec` s."""
+    return EffectSet(specs, attr_dim=attr_dim)
+
+
+def _param(value, dtype=torch.float32) -> nn.Parameter:
+    return nn.Parameter(torch.as_tensor(value, dtype=dtype).clone())
+
+
+# ----------------------------------------------------------------------------- built-in effects
+@register_effect("gravity")
+class Gravity(Effect):
+    """m g on every splat (g from the scene)."""
+
+    in_reference = True
+
+    @dataclass
+    class Params:
+        scale: float = 1.0
+
+    def forward(self, ctx: EffectContext) -> torch.Tensor:
+        return ctx.masses[:, None] * (self.params.scale * ctx.gravity)[None, :]
+
+
+@register_effect("support")
+class Support(Effect):
+    """Table support within ``tau`` of the plane (see module docstring).
+
+    Penalty form with a learned magnitude: ``gain`` scales the weight-carrying
+    part (1 = cancels the normal component of gravity at contact), the
+    penetration stiffness k (1/s^2, learned in log space) pushes splats below
+    the plane back out. w(d) = 1 - smoothstep(d / tau) for d in [0, tau].
+    """
+
+    in_reference = True
+
+    @dataclass
+    class Params:
+        tau: float = 0.01
+        gain: float = 1.0
+        stiffness: float = 500.0
+
+    def __init__(self, params, *, attr_dim: int = 0) -> None:
+        super().__init__(params, attr_dim=attr_dim)
+        if not params.tau > 0 or not params.stiffness > 0:
+            raise ConfigError(f"effect support: tau and stiffness must be > 0, got {params}")
+        self.gain = _param(float(params.gain))
+        self.log_stiffness = _param(float(torch.log(torch.tensor(params.stiffness))))
+
+    def forward(self, ctx: EffectContext) -> torch.Tensor:
+        n = ctx.plane_normal
+        d = ctx.signed_distance()
+        t = (d / self.params.tau).clamp(0.0, 1.0)
+        w = 1.0 - t * t * (3.0 - 2.0 * t)  # 1 at d <= 0, 0 at d >= tau, C1 in between
+        weight_n = torch.clamp(-(ctx.gravity @ n), min=0.0)  # |normal part of g| when it pushes into the table
+        mag = self.gain * weight_n + self.log_stiffness.exp() * torch.relu(-d)
+        return (ctx.masses * w * mag)[:, None] * n[None, :]
+
+
+@register_effect("robot")
+class RobotForce(Effect):
+    """Robot-induced force: a small message-passing module from control points to splats."""
+
+    FEATURES = 11  # + attr_dim
+
+    @dataclass
+    class Params:
+        radius: float = 0.05
+        max_neighbors: int = 64  # per control point; 0 = every splat within the radius
+        hidden: int = 32
+        layers: int = 1
+        accel_scale: float = 9.81
+        velocity_scale: float = 1.0
+
+    def __init__(self, params, *, attr_dim: int = 0) -> None:
+        super().__init__(params, attr_dim=attr_dim)
+        if not params.radius > 0 or params.hidden < 1 or params.layers < 0 or params.max_neighbors < 0:
+            raise ConfigError(
+                f"effect robot: radius > 0, max_neighbors >= 0, hidden >= 1, layers >= 0 required, got {params}"
+            )
+        h = params.hidden
+        fin = self.FEATURES + attr_dim
+        edge = [nn.Linear(fin, h), nn.SiLU()]
+        for _ in range(params.layers):
+            edge += [nn.Linear(h, h), nn.SiLU()]
+        self.edge_mlp = nn.Sequential(*edge[:-1])  # no activation on the message
+        node = [nn.Linear(h, h), nn.SiLU()]
+        for _ in range(params.layers - 1):
+            node += [nn.Linear(h, h), nn.SiLU()]
+        node.append(nn.Linear(h, 3, bias=False))  # a bias would cancel in node_mlp(agg) - node_mlp(0)
+        self.node_mlp = nn.Sequential(*node)
+
+    def edges(self, ctx: EffectContext) -> tuple[torch.Tensor, torch.Tensor]:
+        """(control-point index [E], splat index [E]): each control point's nearest
+        ``max_neighbors`` splats closer than the radius."""
+        cp = ctx.control_points
+        r = self.params.radius
+        x = ctx.positions.detach()
+        lo = cp.detach().min(0).values - r
+        hi = cp.detach().max(0).values + r
+        cand = torch.nonzero(((x >= lo) & (x <= hi)).all(-1)).squeeze(-1)  # bounding-box prefilter
+        if cand.numel() == 0:
+            z = torch.zeros(0, dtype=torch.long, device=x.device)
+            return z, z
+        d2 = ((x[cand][None, :, :] - cp.detach()[:, None, :]) ** 2).sum(-1)  # [P, C]
+        k = self.params.max_neighbors
+        if k and cand.numel() > k:
+            d2k, ck = torch.topk(d2, k, dim=1, largest=False, sorted=False)  # [P, k]
+            j, slot = torch.nonzero(d2k < r * r, as_tuple=True)
+            return j, cand[ck[j, slot]]
+        j, c = torch.nonzero(d2 < r * r, as_tuple=True)
+        return j, cand[c]
+
+    def forward(self, ctx: EffectContext) -> torch.Tensor:
+        n = ctx.num_nodes
+        out = ctx.positions.new_zeros((n, 3))
+        if ctx.control_points is None or ctx.control_points.shape[0] == 0:
+            return out
+        j, i = self.edges(ctx)
+        if i.numel() == 0:
+            return out
+        p = self.params
+        rel = ctx.positions[i] - ctx.control_points[j]  # [E, 3], differentiable
+        dist = torch.sqrt((rel * rel).sum(-1, keepdim=True) + 1e-18)
+        cpv = ctx.control_velocities[j]
+        feats = [
+            rel / p.radius,
+            dist / p.radius,
+            ctx.gripper.reshape(1, 1).expand(rel.shape[0], 1).to(rel.dtype),
+            cpv / p.velocity_scale,
+            (ctx.velocities[i] - cpv) / p.velocity_scale,
+        ]
+        if self.attr_dim:
+            feats.append(ctx.attrs[i])
+        f = torch.cat(feats, dim=-1)
+        cut = (1.0 - (dist / p.radius) ** 2).clamp_min(0.0) ** 2  # smooth cutoff: 0 at the radius
+        msg = cut * self.edge_mlp(f)
+        active = torch.nonzero(torch.bincount(i, minlength=n)).squeeze(-1)  # sorted splats in reach
+        slot = torch.full((n,), -1, dtype=torch.long, device=i.device)
+        slot[active] = torch.arange(active.shape[0], device=i.device)
+        inv = slot[i]
+        agg = msg.new_zeros((active.shape[0], msg.shape[1])).index_add_(0, inv, msg)
+        acc = self.node_mlp(agg) - self.node_mlp(agg.new_zeros((1, agg.shape[1])))  # 0 when no message
+        force = (ctx.masses[active] * p.accel_scale)[:, None] * acc
+        return out.index_copy(0, active, force)
+
+
+@register_effect("wind")
+class Wind(Effect):
+    """Constant acceleration field (m/s^2) times mass; learnable, zero by default."""
+
+    @dataclass
+    class Params:
+        accel: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+    def __init__(self, params, *, attr_dim: int = 0) -> None:
+        super().__init__(params, attr_dim=attr_dim)
+        if len(params.accel) != 3:
+            raise ConfigError(f"effect wind: accel must have 3 entries, got {params.accel}")
+        self.accel = _param(list(params.accel))
+
+    def forward(self, ctx: EffectContext) -> torch.Tensor:
+        return ctx.masses[:, None] * self.accel.to(ctx.positions.dtype)[None, :]
+
+
+@register_effect("linear_drag")
+class LinearDrag(Effect):
+    """-b m v (b in 1/s, learnable, unconstrained so a fit can report its sign)."""
+
+    @dataclass
+    class Params:
+        coeff: float = 0.0
+
+    def __init__(self, params, *, attr_dim: int = 0) -> None:
+        super().__init__(params, attr_dim=attr_dim)
+        self.coeff = _param(float(params.coeff))
+
+    def forward(self, ctx: EffectContext) -> torch.Tensor:
+        return -(self.coeff * ctx.masses)[:, None] * ctx.velocities
+
+
+@register_effect("quadratic_drag")
+class QuadraticDrag(Effect):
+    """-c m |v| v (c in 1/m, learnable)."""
+
+    @dataclass
+    class Params:
+        coeff: float = 0.0
+
+    def __init__(self, params, *, attr_dim: int = 0) -> None:
+        super().__init__(params, attr_dim=attr_dim)
+        self.coeff = _param(float(params.coeff))
+
+    def forward(self, ctx: EffectContext) -> torch.Tensor:
+        v = ctx.velocities
+        speed = torch.sqrt((v * v).sum(-1, keepdim=True) + 1e-18)
+        return -(self.coeff * ctx.masses)[:, None] * speed * v

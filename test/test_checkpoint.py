@@ -1,0 +1,110 @@
+"""Checkpoints: atomic save, load from the file alone, bit-identical rollouts."""
+
+from __future__ import annotations
+
+import math
+import os
+
+import pytest
+import torch
+
+from soma_ros.core.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
+from soma_ros.core.config import load_model_config
+from soma_ros.core.scenes import synthetic_rope
+from soma_ros.core.simulator import RobotAction, SceneContext, Simulator
+
+torch.set_num_threads(1)
+
+
+def _actions(sp, n=12):
+    cp0 = sp.means[sp.means[:, 0] > 0.15][:30].clone()
+    return [RobotAction(cp0 + torch.tensor([0.0, 0.003 * i, 0.002 * i]), 0.5 + 0.4 * math.sin(i)) for i in range(n)]
+
+
+def _trained_looking_model(model="cpu"):
+    torch.manual_seed(7)
+    sp = synthetic_rope(1500, seed=8, center=(0.0, 0.0, 0.0))
+    sim = Simulator(load_model_config(model))
+    sim.add_effect({"name": "wind", "accel": [0.1, 0.0, 0.0]})
+    sim.train()
+    with torch.no_grad():  # fit the normalisers a little so that their statistics matter
+        sim.rollout(sim.init_state(sp, SceneContext.table()), _actions(sp, 4))
+        sim.splat_attrs.normal_()
+    sim.eval()
+    return sp, sim
+
+
+def _rollout(sim, sp, scene):
+    with torch.no_grad():
+        return sim.rollout(sim.init_state(sp, scene), _actions(sp))
+
+
+@pytest.mark.parametrize("model", ["cpu", "paper"])
+def test_roundtrip_gives_bit_identical_rollouts(tmp_path, model):
+    sp, sim = _trained_looking_model(model)
+    assert float(sim.node_norms[1].count) > 0
+    scene = SceneContext.table(dt=1 / 15)
+    ref = _rollout(sim, sp, scene)
+    path = save_checkpoint(tmp_path / "ckpt" / "model.pt", sim, extra={"step": 12, "note": "test"})
+    assert path.is_file()
+    assert [p.name for p in path.parent.iterdir()] == ["model.pt"]  # no temp file left behind
+    loaded = load_checkpoint(path).eval()
+    assert loaded.checkpoint_extra == {"step": 12, "note": "test"}
+    assert loaded.config.to_dict() == sim.config.to_dict()
+    assert [e.instance_key for e in loaded.config.effects] == ["gravity", "support", "robot", "wind"]
+    assert loaded.hierarchy.sizes == sim.hierarchy.sizes
+    for a, b in zip(sim.state_dict().items(), loaded.state_dict().items()):
+        assert a[0] == b[0] and torch.equal(a[1], b[1]), a[0]
+    got = _rollout(loaded, sp, scene)
+    for s1, s2 in zip(ref, got):
+        assert torch.equal(s1.means, s2.means)
+        assert torch.equal(s1.covs, s2.covs)
+        assert torch.equal(s1.quats, s2.quats)
+    assert float((ref[-1].means - sp.means).norm(dim=-1).max()) > 1e-5  # a real rollout, not at rest
+
+
+def test_save_is_atomic_and_bad_files_fail_clearly(tmp_path, monkeypatch):
+    sp, sim = _trained_looking_model()
+    path = tmp_path / "m.pt"
+    save_checkpoint(path, sim, extra={"v": 1})
+    before = path.read_bytes()
+
+    def boom(*a, **k):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(os, "replace", boom)
+    with pytest.raises(OSError, match="disk full"):
+        save_checkpoint(path, sim, extra={"v": 2})
+    monkeypatch.undo()
+    assert path.read_bytes() == before  # old checkpoint intact
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.pt"]  # temp file cleaned up
+    with pytest.raises(TypeError, match="cannot go into a checkpoint"):
+        save_checkpoint(path, sim, extra={"obj": object()})
+    with pytest.raises(FileNotFoundError):
+        load_checkpoint(tmp_path / "missing.pt")
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="not a readable soma_ros checkpoint"):
+        load_checkpoint(junk)
+    other = tmp_path / "other.pt"
+    torch.save({"format": "something/else"}, other)
+    with pytest.raises(ValueError, match="not a soma_ros simulator checkpoint"):
+        load_checkpoint(other)
+    payload = read_checkpoint(path)
+    payload["state_dict"].pop("gnn.decoder.net.0.weight")
+    broken = tmp_path / "broken.pt"
+    torch.save(payload, broken)
+    with pytest.raises(ValueError, match="missing"):
+        load_checkpoint(broken)
+
+
+def test_unbound_model_roundtrips(tmp_path):
+    sim = Simulator(load_model_config("cpu"))
+    path = save_checkpoint(tmp_path / "fresh.pt", sim)
+    loaded = load_checkpoint(path)
+    assert not loaded.is_bound
+    sp = synthetic_rope(400, seed=1)
+    with torch.no_grad():
+        a = sim.rollout(sim.init_state(sp, SceneContext.table()), _actions(sp, 3))[-1]
+        b = loaded.rollout(loaded.init_state(sp, SceneContext.table()), _actions(sp, 3))[-1]
+    assert torch.equal(a.means, b.means)

@@ -1,0 +1,181 @@
+"""Effect registry and the built-in force terms."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import pytest
+import torch
+
+from soma_ros.core.config import ConfigError, EffectSpec, load_model_config
+from soma_ros.core.effects import (
+    EFFECTS,
+    Effect,
+    EffectContext,
+    build_effect,
+    build_effects,
+    known_effects,
+    register_effect,
+)
+from soma_ros.core.scenes import synthetic_rope
+from soma_ros.core.simulator import RobotAction, SceneContext, Simulator
+
+torch.set_num_threads(1)
+
+
+def _ctx(n=50, z=None, vel=None, cp=None, cpv=None, grip=0.5, seed=0) -> EffectContext:
+    g = torch.Generator().manual_seed(seed)
+    pos = torch.rand(n, 3, generator=g) * 0.1
+    if z is not None:
+        pos[:, 2] = z
+    return EffectContext(
+        positions=pos,
+        velocities=torch.zeros(n, 3) if vel is None else vel,
+        masses=torch.full((n,), 0.01),
+        attrs=torch.zeros(n, 5),
+        gravity=torch.tensor([0.0, 0.0, -9.81]),
+        plane_normal=torch.tensor([0.0, 0.0, 1.0]),
+        plane_offset=torch.tensor(0.0),
+        dt=1 / 30,
+        control_points=cp,
+        control_velocities=None if cp is None else (torch.zeros_like(cp) if cpv is None else cpv),
+        gripper=None if cp is None else torch.tensor(grip),
+    )
+
+
+def test_registry_lists_builtins_and_unknown_names_fail_clearly():
+    for name in ("gravity", "support", "robot", "wind", "linear_drag", "quadratic_drag"):
+        assert name in EFFECTS
+    with pytest.raises(ConfigError) as exc:
+        build_effect("tornado")
+    msg = str(exc.value)
+    assert "tornado" in msg and all(n in msg for n in known_effects())
+    with pytest.raises(ConfigError, match=r"unknown key.*known: accel"):
+        build_effect({"name": "wind", "acel": [1, 0, 0]})
+    with pytest.raises(ConfigError, match="duplicate"):
+        load_model_config({"effects": ["gravity", "gravity"]})
+    # two instances of one effect need distinct keys
+    s = build_effects(["wind", {"name": "wind", "key": "gust", "accel": [0.0, 1.0, 0.0]}])
+    assert s.keys() == ["wind", "gust"]
+    with pytest.raises(ConfigError, match="already present"):
+        s.add("wind")
+
+
+def test_gravity_support_and_drag_formulas():
+    tau = 0.01
+    ctx = _ctx(z=torch.linspace(-0.005, 0.02, 50))
+    m = ctx.masses[:, None]
+    assert torch.allclose(build_effect("gravity")(ctx), m * torch.tensor([0.0, 0.0, -9.81]))
+    sup = build_effect({"name": "support", "tau": tau, "stiffness": 400.0})(ctx)
+    z = ctx.positions[:, 2]
+    assert torch.all(sup[:, :2] == 0)
+    assert torch.all(sup[z >= tau] == 0)  # no support beyond tau
+    # at or below the plane: carries the full weight, plus the penetration penalty
+    below = z <= 0
+    expect = 0.01 * (9.81 + 400.0 * (-z[below]))
+    assert torch.allclose(sup[below, 2], expect, rtol=1e-5)
+    mid = (z > 0) & (z < tau)
+    assert bool(((sup[mid, 2] > 0) & (sup[mid, 2] < 0.01 * 9.81)).all())  # smooth falloff
+    # drags
+    v = torch.randn(50, 3)
+    ctx = _ctx(vel=v)
+    lin = build_effect({"name": "linear_drag", "coeff": 0.5})(ctx)
+    assert torch.allclose(lin, -0.5 * ctx.masses[:, None] * v)
+    quad = build_effect({"name": "quadratic_drag", "coeff": 2.0})(ctx)
+    assert torch.allclose(quad, -2.0 * ctx.masses[:, None] * v.norm(dim=-1, keepdim=True) * v, atol=1e-6)
+    # fresh wind / drags add exactly nothing
+    for name in ("wind", "linear_drag", "quadratic_drag"):
+        assert torch.count_nonzero(build_effect(name)(ctx)) == 0
+
+
+def test_robot_force_is_local_smooth_and_learnable():
+    torch.manual_seed(0)
+    eff = build_effect({"name": "robot", "radius": 0.05, "hidden": 16}, attr_dim=5)
+    far = torch.tensor([[5.0, 5.0, 5.0]])
+    assert torch.count_nonzero(eff(_ctx(cp=far))) == 0
+    assert torch.count_nonzero(build_effects(["robot"], attr_dim=5)(_ctx())) == 0  # no robot at all
+    ctx = _ctx(cp=torch.tensor([[0.05, 0.05, 0.05]]), cpv=torch.tensor([[0.1, 0.0, 0.0]]))
+    f = eff(ctx)
+    d = (ctx.positions - ctx.control_points).norm(dim=-1)
+    assert torch.count_nonzero(f[d >= 0.05]) == 0
+    assert bool((f[d < 0.05].norm(dim=-1) > 0).all())
+    # gripper state and control-point velocity are inputs
+    ctx2 = _ctx(cp=ctx.control_points, cpv=ctx.control_velocities, grip=1.0)
+    assert not torch.allclose(eff(ctx2), f)
+    # continuity at the radius: a splat just inside gets an almost-zero force
+    one = EffectContext(
+        positions=torch.tensor([[0.0499, 0.0, 0.0], [0.01, 0.0, 0.0]]), velocities=torch.zeros(2, 3),
+        masses=torch.full((2,), 0.01), attrs=torch.zeros(2, 5), gravity=torch.tensor([0.0, 0.0, -9.81]),
+        plane_normal=torch.tensor([0.0, 0.0, 1.0]), plane_offset=torch.tensor(0.0), dt=1 / 30,
+        control_points=torch.zeros(1, 3), control_velocities=torch.zeros(1, 3), gripper=torch.tensor(0.0),
+    )
+    f1 = eff(one).detach()
+    assert float(f1[0].norm()) < 1e-3 * float(f1[1].norm())
+    # the per-control-point cap keeps the nearest splats within the radius (dense objects)
+    capped = build_effect({"name": "robot", "radius": 0.08, "max_neighbors": 5, "hidden": 8}, attr_dim=5)
+    cps = torch.tensor([[0.05, 0.05, 0.05], [0.0, 0.0, 0.0]])
+    ctx3 = _ctx(n=300, cp=cps)
+    j, i = capped.edges(ctx3)
+    d = torch.cdist(cps, ctx3.positions)
+    for p in range(2):
+        near = torch.sort(d[p]).indices[:5]
+        expect = set(near[d[p][near] < 0.08].tolist())
+        assert set(i[j == p].tolist()) == expect and len(expect) >= 1
+    assert torch.count_nonzero(capped(ctx3).norm(dim=-1)) == len(set(i.tolist()))
+    # gradients reach all its parameters
+    f.square().sum().backward()
+    for n, p in eff.named_parameters():
+        assert p.grad is not None and p.grad.abs().max() > 0, n
+
+
+def test_trainable_false_freezes_and_custom_effects_register():
+    eff = build_effect({"name": "wind", "trainable": False, "accel": [1.0, 0.0, 0.0]})
+    assert not any(p.requires_grad for p in eff.parameters())
+
+    @register_effect("test_spring_to_origin")
+    class Spring(Effect):
+        @dataclass
+        class Params:
+            k: float = 1.0
+
+        def forward(self, ctx):
+            return -self.params.k * ctx.masses[:, None] * ctx.positions
+
+    try:
+        s = build_effects(["gravity", {"name": "test_spring_to_origin", "k": 3.0}])
+        ctx = _ctx()
+        assert torch.allclose(s.per_term(ctx)["test_spring_to_origin"], -3.0 * 0.01 * ctx.positions)
+        with pytest.raises(ValueError, match="already registered"):
+            register_effect("test_spring_to_origin")(type("Other", (Spring,), {}))
+    finally:
+        EFFECTS.pop("test_spring_to_origin", None)
+
+
+def test_adding_wind_by_config_changes_force_and_motion():
+    sp = synthetic_rope(800, seed=3)
+    scene = SceneContext.table()
+    base = load_model_config("cpu")
+    torch.manual_seed(0)
+    sim = Simulator(base).eval()
+    windy_cfg = load_model_config("cpu")
+    windy_cfg.effects.append(EffectSpec("wind", params={"accel": [2.0, 0.0, 0.0]}))
+    torch.manual_seed(0)
+    windy = Simulator(windy_cfg).eval()
+    windy.load_state_dict(sim.state_dict(), strict=False)
+    with torch.no_grad():
+        s0 = sim.init_state(sp, scene)
+        w0 = windy.init_state(sp, scene)
+        f_base, f_wind = sim.forces(s0, None), windy.forces(w0, None)
+        assert torch.allclose(f_wind - f_base, w0.episode.masses[0][:, None] * torch.tensor([2.0, 0.0, 0.0]))
+        far = RobotAction(torch.full((30, 3), 3.0), 0.0)
+        a = sim.rollout(s0, [far] * 5)[-1]
+        b = windy.rollout(w0, [far] * 5)[-1]
+    assert torch.equal(a.means, s0.means)  # no wind: at rest
+    assert float((b.means - w0.means).norm(dim=-1).max()) > 1e-6  # wind moves it
+    # add_effect on a live model: zero-initialised wind changes nothing until fitted
+    eff = sim.add_effect({"name": "wind"})
+    assert "wind" in sim.effects and sim.config.effects[-1].name == "wind"
+    assert [p is eff.accel for p in sim.effect_parameters("wind")] == [True]
+    with torch.no_grad():
+        s1 = sim.init_state(sp, scene)
+        assert torch.equal(sim.rollout(s1, [far] * 3)[-1].means, s1.means)

@@ -1,0 +1,76 @@
+"""Model / object configs: YAML loading, strict validation, merging."""
+
+from __future__ import annotations
+
+import pytest
+import yaml
+
+from soma_ros.core.config import (
+    ConfigError,
+    EffectSpec,
+    ModelConfig,
+    load_model_config,
+    load_object_config,
+)
+from soma_ros.paths import config_dir
+
+
+def test_shipped_model_configs_load_and_roundtrip():
+    paper = load_model_config("paper")
+    cpu = load_model_config("cpu")
+    assert (paper.gnn.latent, paper.gnn.layers, paper.gnn.layer_norm) == (128, 16, True)
+    assert paper.graph.k == 16 and paper.graph.radii == [0.03, 0.2, 0.5, 5.0]
+    assert paper.hierarchy.thresholds == [0.02, 0.2] and paper.num_levels == 4
+    assert cpu.gnn.latent <= 48 and cpu.gnn.layers <= 4 and not cpu.gnn.splat_head
+    for cfg in (paper, cpu):
+        assert [e.name for e in cfg.effects] == ["gravity", "support", "robot"]
+        again = ModelConfig.from_dict(yaml.safe_load(yaml.safe_dump(cfg.to_dict())))
+        assert again == cfg
+    assert load_model_config(config_dir() / "models" / "cpu.yaml") == cpu
+
+
+@pytest.mark.parametrize("obj", ["rope", "cloth", "doll"])
+def test_object_configs_override_hierarchy(obj, tmp_path):
+    o = load_object_config(obj)
+    assert o.name == obj and o.total_mass > 0 and o.hierarchy.thresholds == [0.02, 0.2]
+    custom = tmp_path / "thin.yaml"
+    custom.write_text(
+        "name: thin\nhierarchy:\n  thresholds: [0.01, 0.05, 0.3]\ngraph_radii: [0.02, 0.1, 0.2, 0.6, 5.0]\n"
+    )
+    cfg = load_model_config("cpu", object=custom)
+    assert cfg.hierarchy.thresholds == [0.01, 0.05, 0.3] and cfg.num_levels == 5
+    assert cfg.graph.radii == [0.02, 0.1, 0.2, 0.6, 5.0]
+    # more levels without radii for them: a clear error
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: bad\nhierarchy:\n  thresholds: [0.01, 0.05, 0.3]\n")
+    with pytest.raises(ConfigError, match="one radius per level"):
+        load_model_config("cpu", object=bad)
+
+
+@pytest.mark.parametrize(
+    "patch, message",
+    [
+        ({"gnn": {"latnet": 3}}, r"gnn\.latnet: unknown key"),
+        ({"gnn": {"latent": "big"}}, r"gnn\.latent: expected int"),
+        ({"hierarchy": {"thresholds": [0.2, 0.02]}}, "increasing"),
+        ({"graph": {"radii": [0.1, 0.2]}}, "one radius per level"),
+        ({"graph": {"knn_backend": "faiss"}}, "knn_backend"),
+        ({"normalizer": {"mode": "magic"}}, "normalizer.mode"),
+        ({"dynamics": {"max_speed": -1.0}}, "max_speed"),
+        ({"effects": [{"tau": 0.1}]}, "without 'name'"),
+        ({"effects": "gravity"}, "expected a list"),
+        ({"simulator": {}}, "unknown key"),
+    ],
+)
+def test_bad_configs_name_the_key(patch, message):
+    with pytest.raises(ConfigError, match=message):
+        load_model_config(patch)
+
+
+def test_effect_spec_parsing():
+    s = EffectSpec.parse({"name": "support", "tau": 0.02, "key": "table"})
+    assert (s.name, s.instance_key, s.params) == ("support", "table", {"tau": 0.02})
+    assert EffectSpec.parse("wind").to_yaml_dict() == {"name": "wind"}
+    assert s.to_yaml_dict() == {"name": "support", "key": "table", "tau": 0.02}
+    with pytest.raises(FileNotFoundError):
+        load_model_config("no_such_model")
