@@ -41,6 +41,7 @@ setup(
             "soma = soma_ros.cli:main",
             "soma_sim_node = soma_ros.nodes.sim_node:main",
             "soma_bag_player = soma_ros.nodes.bag_player:main",
+            "soma_recorder = soma_ros.nodes.recorder:main",
         ],
     },
 )

@@ -76,3 +76,16 @@ def shared_dir() -> Path:
     if not SHARED.is_dir():
         pytest.skip(f"shared data folder not found at {SHARED}")
     return SHARED
+
+
+@pytest.fixture(scope="session")
+def untrained_run(tmp_path_factory):
+    """(checkpoint, scene dir) of a random-weight `cpu` model on a 2,000-splat synthetic rope."""
+    from soma_ros.core.scenes import write_untrained_run
+
+    return write_untrained_run(tmp_path_factory.mktemp("untrained"), n=2000, width=160, height=120)
+
+
+def sim_node_args(checkpoint, scene, *extra: str) -> list:
+    """--ros-args for soma_sim_node."""
+    return ["--ros-args", "-p", f"checkpoint:={checkpoint}", "-p", f"scene:={scene}", *extra]

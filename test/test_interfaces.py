@@ -84,13 +84,15 @@ def test_non_finite_splats_are_refused():
         cloud_to_splats(_rosbags_cloud(s))
 
 
-def test_reset_service_across_two_processes(ros_env):
+def test_reset_service_across_two_processes(ros_env, untrained_run):
     """A server process (soma_sim_node) and a client process (soma scene reset)
     exchange a ResetScene call carrying 13,000 splats; the server reports the
     exact count back."""
+    from conftest import sim_node_args
     from soma_ros.nodes.testing import RosProcess
 
-    with RosProcess("soma_ros.nodes.sim_node", [], ros_env, name="server") as server:
+    args = sim_node_args(*untrained_run, "-p", "render_rate_hz:=0.0", "-p", "splat_rate_hz:=0.0")
+    with RosProcess("soma_ros.nodes.sim_node", args, ros_env, name="server") as server:
         client = subprocess.run(
             [sys.executable, "-m", "soma_ros.cli", "scene", "reset", "--synthetic", "13000", "--timeout", "60"],
             env=ros_env, capture_output=True, text=True, timeout=120,

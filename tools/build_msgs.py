@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Build the soma_msgs interface package (msg_schemas/) into a Python venv.
+"""Build the soma_msgs interface package (msg_schemas/) into a Python venv
+(and the vendored tf2_msgs TFMessage when the venv lacks tf2_msgs).
 
 Runs with the venv's interpreter: `.venv/bin/python tools/build_msgs.py`.
 Idempotent: it rewrites the ROS wheels' stale build-container include paths
@@ -20,7 +21,6 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "msg_schemas"
-BUILD = ROOT / "build" / "soma_msgs"
 PREFIX = Path(sys.prefix)
 STALE_PY_INCLUDE = "/opt/python/cp311-cp311/include/python3.11"
 STALE_NUMPY_INCLUDE = "/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include"
@@ -42,47 +42,65 @@ def fix_stale_include_paths() -> int:
     return changed
 
 
-def source_hash() -> str:
+def source_hash(src: Path) -> str:
     h = hashlib.sha256()
-    for f in sorted(SRC.rglob("*")):
-        if f.is_file():
-            h.update(f.relative_to(SRC).as_posix().encode())
+    for f in sorted(src.rglob("*")):
+        if f.is_file() and "vendor" not in f.relative_to(src).parts[:1]:
+            h.update(f.relative_to(src).as_posix().encode())
             h.update(f.read_bytes())
     h.update(str(PREFIX).encode())
     return h.hexdigest()
 
 
+def have_module(name: str) -> bool:
+    r = subprocess.run([sys.executable, "-c", f"import {name}"], capture_output=True)
+    return r.returncode == 0
+
+
 def main() -> int:
-    stamp = PREFIX / "share" / "soma_msgs" / ".soma_build_stamp"
-    digest = source_hash()
-    if stamp.is_file() and stamp.read_text().strip() == digest:
-        print("soma_msgs: up to date")
-        return 0
     n = fix_stale_include_paths()
     if n:
-        print(f"soma_msgs: rewrote stale include paths in {n} CMake files of the venv")
+        print(f"interfaces: rewrote stale include paths in {n} CMake files of the venv")
+    packages = []
+    if not have_module("tf2_msgs"):
+        packages.append(("tf2_msgs", SRC / "vendor" / "tf2_msgs"))
+    packages.append(("soma_msgs", SRC))
+    for name, src in packages:
+        rc = build_package(name, src)
+        if rc:
+            return rc
+    return 0
+
+
+def build_package(name: str, src: Path) -> int:
+    stamp = PREFIX / "share" / name / ".soma_build_stamp"
+    digest = source_hash(src)
+    if stamp.is_file() and stamp.read_text().strip() == digest:
+        print(f"{name}: up to date")
+        return 0
+    build = ROOT / "build" / name
     env = dict(os.environ)
     env["AMENT_PREFIX_PATH"] = str(PREFIX)
     env["CMAKE_PREFIX_PATH"] = str(PREFIX)
     env["PATH"] = f"{PREFIX / 'bin'}{os.pathsep}{env.get('PATH', '')}"
-    BUILD.mkdir(parents=True, exist_ok=True)
+    build.mkdir(parents=True, exist_ok=True)
     cfg = [
-        "cmake", "-S", str(SRC), "-B", str(BUILD),
+        "cmake", "-S", str(src), "-B", str(build),
         f"-DCMAKE_INSTALL_PREFIX={PREFIX}",
         f"-DCMAKE_PREFIX_PATH={PREFIX}",
         f"-DPython3_EXECUTABLE={sys.executable}",
         "-DBUILD_TESTING=OFF",
         "-DCMAKE_BUILD_TYPE=Release",
     ]
-    for cmd in (cfg, ["cmake", "--build", str(BUILD), "-j", str(os.cpu_count() or 2)], ["cmake", "--install", str(BUILD)]):
+    for cmd in (cfg, ["cmake", "--build", str(build), "-j", str(os.cpu_count() or 2)], ["cmake", "--install", str(build)]):
         print("+", " ".join(cmd), flush=True)
         r = subprocess.run(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         if r.returncode != 0:
             print(r.stdout[-8000:])
-            print(f"soma_msgs: command failed ({r.returncode}): {' '.join(cmd)}", file=sys.stderr)
+            print(f"{name}: command failed ({r.returncode}): {' '.join(cmd)}", file=sys.stderr)
             return r.returncode
     stamp.write_text(digest + "\n")
-    print(f"soma_msgs: built and installed into {PREFIX}")
+    print(f"{name}: built and installed into {PREFIX}")
     return 0
 
 

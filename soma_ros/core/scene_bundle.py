@@ -85,7 +85,7 @@ class SceneBundle:
     sim_frame: str = "world"
     object_name: str = "rope"
     robot_config: str = "panda"
-    base_to_sim: dict = field(default_factory=lambda: {"s": 1.0, "R": np.eye(3).tolist(), "t": [0.0, 0.0, 0.0]})
+    base_to_sim: dict = field(default_factory=lambda: {"scale": 1.0, "rotation": np.eye(3).tolist(), "translation": [0.0, 0.0, 0.0]})
     cameras: list[CameraSpec] = field(default_factory=list)
     extra: dict = field(default_factory=dict)
 

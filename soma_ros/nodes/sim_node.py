@@ -1,34 +1,60 @@
 """soma_sim_node: the live simulator node (the digital twin on ROS 2).
 
-Topics (prefix from the `topic_prefix` parameter, default /soma):
-  sub  /joint_states                  sensor_msgs/JointState (sensor-data QoS; reliable publishers work too)
-  pub  <prefix>/splats                sensor_msgs/PointCloud2 (soma_msgs/SplatLayout, packed rgb)
-  pub  <prefix>/status                soma_msgs/SimStatus
-  srv  <prefix>/reset                 soma_msgs/srv/ResetScene
+Follows /joint_states, steps the learned simulator at a fixed rate from the
+latest action, and publishes what the cameras would see.
 
-Start: ``soma_sim_node --ros-args -p scene:=FILE_OR_DIR [-p rate_hz:=30.0]``.
+Topics (``<p>`` = the `topic_prefix` parameter, default /soma):
+
+  sub  /joint_states             sensor_msgs/JointState  sensor-data QoS (reliable publishers work too)
+  pub  <p>/<cam>/image_raw       sensor_msgs/Image rgb8
+  pub  <p>/<cam>/depth           sensor_msgs/Image 32FC1, metres (0 = no splat)
+  pub  <p>/<cam>/camera_info     sensor_msgs/CameraInfo
+  pub  <p>/splats                sensor_msgs/PointCloud2, soma_msgs/SplatLayout with packed rgb
+  pub  <p>/status                soma_msgs/SimStatus
+  pub  /tf, /tf_static           <world_frame> -> <sim_frame> (static), camera optical frames
+  srv  <p>/reset                 soma_msgs/srv/ResetScene
+
+Start: ``soma_sim_node --ros-args -p checkpoint:=RUN/checkpoint.pt -p scene:=RUN/scene``
+(or ``--params-file config/sim_node.yaml``).
+
+Physics and rendering run in separate callback groups on a multi-threaded
+executor, so a slow render never delays a step; publishers keep the last
+message only, so a slow subscriber never stalls the node.
 """
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import time
+from collections import deque
 from pathlib import Path
 from typing import Optional
 
+import numpy as np
 import rclpy
+from geometry_msgs.msg import TransformStamped
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
-from sensor_msgs.msg import JointState, PointCloud2
+from sensor_msgs.msg import CameraInfo, Image, JointState, PointCloud2
 from soma_msgs.msg import SimStatus
 from soma_msgs.srv import ResetScene
+from tf2_msgs.msg import TFMessage
 
 from ..core.splats import Splats
-from .conversions import cloud_to_splats_msg, splats_to_cloud
-from .qos import JOINT_STATES_QOS, SENSOR_OUT_QOS, STATUS_QOS
+from .conversions import (
+    camera_info,
+    cloud_to_splats_msg,
+    image_depth32,
+    image_rgb8,
+    ns_from_stamp,
+    splats_to_cloud,
+    stamp_from_ns,
+)
+from .qos import JOINT_STATES_QOS, LATCHED_QOS, SENSOR_OUT_QOS, STATUS_QOS
 
 
 def load_scene_file(path: str) -> Splats:
@@ -45,46 +71,130 @@ def load_scene_file(path: str) -> Splats:
     return s
 
 
+def _matrix_to_tf(T: np.ndarray, parent: str, child: str, stamp) -> TransformStamped:
+    from ..core.geometry import rotmat_to_quat
+    import torch
+
+    q = rotmat_to_quat(torch.as_tensor(T[:3, :3], dtype=torch.float64)).numpy()
+    tf = TransformStamped()
+    tf.header.stamp = stamp
+    tf.header.frame_id = parent
+    tf.child_frame_id = child
+    tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = (float(v) for v in T[:3, 3])
+    tf.transform.rotation.w, tf.transform.rotation.x, tf.transform.rotation.y, tf.transform.rotation.z = (float(v) for v in q)
+    return tf
+
+
+class RateMeter:
+    def __init__(self, window_s: float = 1.0) -> None:
+        self.window = window_s
+        self.t: deque[float] = deque()
+
+    def tick(self) -> None:
+        now = time.monotonic()
+        self.t.append(now)
+        while self.t and now - self.t[0] > self.window:
+            self.t.popleft()
+
+    def rate(self) -> float:
+        if len(self.t) < 2:
+            return 0.0
+        span = self.t[-1] - self.t[0]
+        return (len(self.t) - 1) / span if span > 0 else 0.0
+
+
+def _float_param(node: Node, name: str, default: float, desc: str, lo: float, hi: float) -> float:
+    node.declare_parameter(name, default, ParameterDescriptor(
+        description=desc, floating_point_range=[FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]))
+    return float(node.get_parameter(name).value)
+
+
 class SomaSimNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("soma_sim_node", **kwargs)
-        self.declare_parameter("scene", "", ParameterDescriptor(
-            description="initial scene: a 3DGS .ply/.splat file or a scene bundle directory (empty: wait for /reset)"))
-        self.declare_parameter("checkpoint", "", ParameterDescriptor(description="trained simulator checkpoint (.pt)"))
-        self.declare_parameter("rate_hz", 30.0, ParameterDescriptor(
-            description="physics step rate, Hz",
-            floating_point_range=[FloatingPointRange(from_value=0.5, to_value=1000.0, step=0.0)]))
-        self.declare_parameter("sim_frame", "soma_sim", ParameterDescriptor(description="frame of the simulated splats"))
-        self.declare_parameter("topic_prefix", "/soma", ParameterDescriptor(description="prefix of published topics and the reset service"))
-        prefix = self.get_parameter("topic_prefix").value.rstrip("/")
-        self.sim_frame = self.get_parameter("sim_frame").value
+        p = self.declare_parameter
+        p("checkpoint", "", ParameterDescriptor(description="trained simulator checkpoint (.pt) from `soma train`"))
+        p("scene", "", ParameterDescriptor(description="scene bundle directory (scene.json + splats.ply) from `soma train`/`soma reconstruct`"))
+        p("robot_config", "", ParameterDescriptor(description="robot config name or YAML (default: the scene bundle's)"))
+        p("cameras", [""], ParameterDescriptor(description="cameras to render (default: all of the scene bundle)"))
+        p("device", "cpu", ParameterDescriptor(description="torch device: cpu or cuda[:N]"))
+        p("world_frame", "world", ParameterDescriptor(description="parent frame of the simulation frame"))
+        p("sim_frame", "soma_sim", ParameterDescriptor(description="frame of the simulated splats (identity to the scene's frame)"))
+        p("topic_prefix", "/soma", ParameterDescriptor(description="prefix of published topics and the reset service"))
+        p("torch_threads", 1, ParameterDescriptor(description="torch intra-op threads (1 beside other work)"))
+        self.rate_hz = _float_param(self, "rate_hz", 30.0, "physics step rate, Hz", 0.5, 1000.0)
+        self.render_rate_hz = _float_param(self, "render_rate_hz", 10.0, "image publish rate, Hz (0 = no images)", 0.0, 120.0)
+        self.splat_rate_hz = _float_param(self, "splat_rate_hz", 5.0, "splat cloud publish rate, Hz (0 = none)", 0.0, 120.0)
+        self.render_scale = _float_param(self, "render_scale", 1.0, "image scale relative to the bundle's cameras", 0.05, 4.0)
+        self.max_joint_age = _float_param(self, "max_joint_state_age_s", 1.0,
+                                          "hold the robot still when the newest joint state is older than this, s", 0.01, 3600.0)
 
-        self._lock = threading.Lock()
-        self._splats: Optional[Splats] = None
-        self._step = 0
-        self._js_received = 0
-        self._js_rejected = 0
+        import torch
 
-        scene = self.get_parameter("scene").value
-        if scene:
-            self._splats = load_scene_file(scene)
-            self.get_logger().info(f"loaded scene {scene}: {len(self._splats)} splats")
+        torch.set_num_threads(int(self.get_parameter("torch_threads").value))
+        gp = lambda n: self.get_parameter(n).value  # noqa: E731
+        prefix = gp("topic_prefix").rstrip("/")
+        self.world_frame, self.sim_frame = gp("world_frame"), gp("sim_frame")
+        ckpt, scene = gp("checkpoint"), gp("scene")
+        if not ckpt or not scene:
+            raise ValueError("parameters 'checkpoint' and 'scene' are required "
+                             "(soma_sim_node --ros-args -p checkpoint:=RUN/checkpoint.pt -p scene:=RUN/scene)")
+        from ..live import JointStateFilter, load_live
 
-        self._service_group = MutuallyExclusiveCallbackGroup()
+        cams = [c for c in gp("cameras") if c]
+        self.live = load_live(ckpt, scene, camera_names=cams or None, render_scale=self.render_scale, device=gp("device"))
+        if gp("robot_config"):
+            from ..core.robot import RobotModel
+
+            self.live.robot = RobotModel.from_config(gp("robot_config"))
+        self.joints = JointStateFilter(self.live.required_joints)
+        self.get_logger().info(
+            f"loaded {ckpt} and scene {scene}: {len(self.live.template)} splats, cameras "
+            f"{', '.join(c.name for c in self.live.cameras)}, joints {', '.join(self.live.required_joints)}")
+
         self._step_group = MutuallyExclusiveCallbackGroup()
+        self._render_group = MutuallyExclusiveCallbackGroup()
+        self._service_group = MutuallyExclusiveCallbackGroup()
+        self._input_group = MutuallyExclusiveCallbackGroup()
+
         self.pub_splats = self.create_publisher(PointCloud2, f"{prefix}/splats", SENSOR_OUT_QOS)
         self.pub_status = self.create_publisher(SimStatus, f"{prefix}/status", STATUS_QOS)
-        self.sub_js = self.create_subscription(JointState, "/joint_states", self._on_joint_state, JOINT_STATES_QOS)
+        self.pub_tf = self.create_publisher(TFMessage, "/tf", 100)
+        self.pub_tf_static = self.create_publisher(TFMessage, "/tf_static", LATCHED_QOS)
+        self.pub_img, self.pub_depth, self.pub_info = {}, {}, {}
+        for c in self.live.cameras:
+            self.pub_img[c.name] = self.create_publisher(Image, f"{prefix}/{c.name}/image_raw", SENSOR_OUT_QOS)
+            self.pub_depth[c.name] = self.create_publisher(Image, f"{prefix}/{c.name}/depth", SENSOR_OUT_QOS)
+            self.pub_info[c.name] = self.create_publisher(CameraInfo, f"{prefix}/{c.name}/camera_info", SENSOR_OUT_QOS)
+        self.sub_js = self.create_subscription(JointState, "/joint_states", self._on_joint_state, JOINT_STATES_QOS,
+                                               callback_group=self._input_group)
         self.srv_reset = self.create_service(ResetScene, f"{prefix}/reset", self._on_reset, callback_group=self._service_group)
-        period = 1.0 / float(self.get_parameter("rate_hz").value)
-        self.timer = self.create_timer(period, self._on_step, callback_group=self._step_group)
+
+        self._publish_static_tf()
+        self._step_ms = 0.0
+        self._render_ms = 0.0
+        self._lag_ms = 0.0
+        self._step_rate = RateMeter()
+        self._image_rate = RateMeter()
+        self._last_vec: Optional[np.ndarray] = None
+        self._last_step_ns = 0
+        self.timer = self.create_timer(1.0 / self.rate_hz, self._on_step, callback_group=self._step_group)
+        if self.render_rate_hz > 0:
+            self.render_timer = self.create_timer(1.0 / self.render_rate_hz, self._on_render, callback_group=self._render_group)
+        if self.splat_rate_hz > 0:
+            self.splat_timer = self.create_timer(1.0 / self.splat_rate_hz, self._on_splats, callback_group=self._render_group)
 
     # ----------------------------------------------------------------- inputs
     def _on_joint_state(self, msg: JointState) -> None:
-        self._js_received += 1
-        if len(msg.name) != len(msg.position):
-            self._js_rejected += 1
-            self.get_logger().warn("rejected /joint_states: names and positions differ in length",
+        from ..live import JointStateRejected
+
+        stamp = ns_from_stamp(msg.header.stamp)
+        if stamp == 0:
+            stamp = self.get_clock().now().nanoseconds
+        try:
+            self.joints.push(list(msg.name), list(msg.position), stamp)
+        except JointStateRejected as exc:
+            self.get_logger().warn(f"rejected /joint_states: {exc} ({self.joints.rejected} rejected so far)",
                                    throttle_duration_sec=2.0)
 
     def _on_reset(self, req: ResetScene.Request, resp: ResetScene.Response) -> ResetScene.Response:
@@ -95,52 +205,103 @@ class SomaSimNode(Node):
                 new = load_scene_file(req.ply_path)
             else:
                 raise ValueError("request has neither splats nor ply_path")
-        except (ValueError, FileNotFoundError, OSError) as exc:
-            with self._lock:
-                resp.num_splats = len(self._splats) if self._splats is not None else 0
+            if len(req.initial_joint_state.name):
+                self.joints.clear()
+                self.joints.push(list(req.initial_joint_state.name), list(req.initial_joint_state.position),
+                                 self.get_clock().now().nanoseconds)
+            n = self.live.reset(new)
+        except Exception as exc:  # noqa: BLE001 - any failure must leave the old scene running
+            resp.num_splats = len(self.live.template)
             resp.success = False
             resp.message = f"reset refused: {exc}"
             self.get_logger().warn(resp.message)
             return resp
-        with self._lock:
-            self._splats = new
-            self._step = 0
-        resp.success = True
-        resp.num_splats = len(new)
-        resp.message = f"scene reset: {len(new)} splats"
+        resp.success, resp.num_splats = True, n
+        resp.message = f"scene reset: {n} splats"
         self.get_logger().info(resp.message)
         return resp
 
     # ------------------------------------------------------------------- step
     def _on_step(self) -> None:
+        now = self.get_clock().now().nanoseconds
+        newest = self.joints.newest_stamp_ns()
+        vec = None
+        if newest is not None:
+            vec = self.joints.sample(min(now, newest))
+            self._lag_ms = max(0.0, (now - newest) / 1e6)
+            if self._lag_ms > self.max_joint_age * 1e3:
+                self.get_logger().warn(f"newest /joint_states is {self._lag_ms / 1e3:.1f} s old: holding the last action",
+                                       throttle_duration_sec=5.0)
+        try:
+            _, ms = self.live.step(vec)
+        except Exception as exc:  # noqa: BLE001 - never die on a bad step; report and reset
+            self.get_logger().error(f"step failed ({exc}); resetting to the initial scene", throttle_duration_sec=2.0)
+            self.live.reset(self.live.template)
+            return
+        self._last_vec = vec
+        self._step_ms = ms
+        self._step_rate.tick()
+        self._last_step_ns = now
+        self._publish_status("running" if vec is not None else "waiting_for_joint_states")
+
+    def _publish_status(self, state: str) -> None:
+        st = SimStatus()
+        st.header.stamp = stamp_from_ns(self._last_step_ns)
+        st.header.frame_id = self.sim_frame
+        st.state = state
+        st.step = self.live.steps
+        st.num_splats = len(self.live.template)
+        st.step_time_ms = float(self._step_ms)
+        st.render_time_ms = float(self._render_ms)
+        st.joint_state_lag_ms = float(self._lag_ms)
+        st.step_rate_hz = float(self._step_rate.rate())
+        st.image_rate_hz = float(self._image_rate.rate())
+        st.joint_states_received = self.joints.received
+        st.joint_states_rejected = self.joints.rejected
+        self.pub_status.publish(st)
+
+    # ---------------------------------------------------------------- outputs
+    def _on_render(self) -> None:
+        state, template, _ = self.live.snapshot()
+        vec = self._last_vec
+        if vec is None and any(c.mount_link for c in self.live.cameras):
+            vec = self.joints.sample()
+            if vec is None:
+                return  # mounted cameras need a joint state
         t0 = time.perf_counter()
-        with self._lock:
-            splats = self._splats
-            self._step += 1
-            step = self._step
+        out, cams = self.live.render(state, template, vec)
+        self._render_ms = (time.perf_counter() - t0) * 1e3
+        stamp = stamp_from_ns(self._last_step_ns or self.get_clock().now().nanoseconds)
+        rgb = (out.rgb.clamp(0, 1) * 255).round().to(dtype=__import__("torch").uint8).cpu().numpy()
+        depth = out.depth.cpu().numpy()
+        c2w = cams.cam_to_world().cpu().numpy()
+        tfs = []
+        for i, c in enumerate(self.live.cameras):
+            frame = f"{self.sim_frame}/{c.name}_optical"
+            self.pub_img[c.name].publish(image_rgb8(rgb[i], frame, stamp))
+            self.pub_depth[c.name].publish(image_depth32(depth[i], frame, stamp))
+            self.pub_info[c.name].publish(camera_info(cams.K[i].cpu().numpy(), cams.width, cams.height, frame, stamp))
+            tfs.append(_matrix_to_tf(c2w[i], self.sim_frame, frame, stamp))
+        self.pub_tf.publish(TFMessage(transforms=tfs))
+        self._image_rate.tick()
+
+    def _on_splats(self) -> None:
+        splats = self.live.current_splats()
+        stamp = stamp_from_ns(self._last_step_ns or self.get_clock().now().nanoseconds)
+        self.pub_splats.publish(splats_to_cloud(splats, self.sim_frame, stamp))
+
+    def _publish_static_tf(self) -> None:
         stamp = self.get_clock().now().to_msg()
-        status = SimStatus()
-        status.header.stamp = stamp
-        status.header.frame_id = self.sim_frame
-        status.step = step
-        status.joint_states_received = self._js_received
-        status.joint_states_rejected = self._js_rejected
-        if splats is None:
-            status.state = "no_scene"
-        else:
-            status.state = "running"
-            status.num_splats = len(splats)
-            self.pub_splats.publish(splats_to_cloud(splats, self.sim_frame, stamp))
-        status.step_time_ms = (time.perf_counter() - t0) * 1e3
-        self.pub_status.publish(status)
+        self.pub_tf_static.publish(TFMessage(transforms=[_matrix_to_tf(np.eye(4), self.world_frame, self.sim_frame, stamp)]))
 
 
 def main(argv: Optional[list[str]] = None) -> int:
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     rclpy.init(args=argv if argv is not None else sys.argv)
     node = None
     try:
         node = SomaSimNode()
-        executor = MultiThreadedExecutor(num_threads=3)
+        executor = MultiThreadedExecutor(num_threads=4)
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):

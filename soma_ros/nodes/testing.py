@@ -55,7 +55,8 @@ class RosProcess:
         )
 
     def output(self) -> str:
-        self.log.flush()
+        if not self.log.closed:
+            self.log.flush()
         with open(self.log.name, errors="replace") as f:
             return f.read()
 

@@ -1,0 +1,246 @@
+"""The live simulator engine behind soma_sim_node, free of rclpy.
+
+:class:`JointStateFilter` validates incoming joint states (names, lengths,
+finite values, monotonic stamps), keeps a short history and interpolates by
+stamp. :class:`LiveSimulator` owns a :class:`~soma_ros.core.simulator.Simulator`,
+the running state, the scene bundle (gravity, table, robot->sim transform,
+cameras) and the robot model; it turns a joint vector into the robot action
+R_t (control points and gripper state in the simulation frame), steps the
+model and renders the cameras (mounted cameras follow FK).
+
+Everything here runs without ROS, so it is unit-tested and benchmarked
+directly; the node only moves messages in and out.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+
+from .core.cameras import Cameras
+from .core.render import RenderOutput, render
+from .core.robot import RobotModel
+from .core.scene_bundle import SceneBundle
+from .core.simulator import RobotAction, SimState, Simulator
+from .core.splats import Splats
+
+
+class JointStateRejected(ValueError):
+    """A joint state that was not used, with the reason."""
+
+
+class JointStateFilter:
+    """Validated joint-state history over a fixed set of required joint names.
+
+    ``push`` raises :class:`JointStateRejected` for: names and positions of
+    different lengths, duplicate names, missing required joints, non-finite
+    values of required joints, stamps older than the newest accepted one.
+    Unknown extra joints are ignored and order does not matter.
+    """
+
+    def __init__(self, required: Sequence[str], history: int = 64) -> None:
+        if not required:
+            raise ValueError("JointStateFilter needs at least one required joint")
+        self.required = list(required)
+        self._hist: deque[tuple[int, np.ndarray]] = deque(maxlen=history)
+        self._lock = threading.Lock()
+        self.received = 0
+        self.rejected = 0
+        self.last_reason = ""
+
+    def push(self, names: Sequence[str], positions: Sequence[float], stamp_ns: int) -> np.ndarray:
+        self.received += 1
+        try:
+            vec = self._validate(names, positions, stamp_ns)
+        except JointStateRejected as exc:
+            self.rejected += 1
+            self.last_reason = str(exc)
+            raise
+        with self._lock:
+            self._hist.append((int(stamp_ns), vec))
+        return vec
+
+    def _validate(self, names: Sequence[str], positions: Sequence[float], stamp_ns: int) -> np.ndarray:
+        if len(names) != len(positions):
+            raise JointStateRejected(f"{len(names)} names but {len(positions)} positions")
+        index = {}
+        for i, n in enumerate(names):
+            if n in index:
+                raise JointStateRejected(f"duplicate joint name '{n}'")
+            index[n] = i
+        missing = [r for r in self.required if r not in index]
+        if missing:
+            raise JointStateRejected(f"missing joints: {', '.join(missing)}")
+        vec = np.array([positions[index[r]] for r in self.required], dtype=np.float64)
+        if not np.all(np.isfinite(vec)):
+            bad = [r for r, v in zip(self.required, vec) if not np.isfinite(v)]
+            raise JointStateRejected(f"non-finite values for: {', '.join(bad)}")
+        with self._lock:
+            if self._hist and stamp_ns < self._hist[-1][0]:
+                raise JointStateRejected(
+                    f"stamp went backwards by {(self._hist[-1][0] - stamp_ns) / 1e6:.1f} ms")
+        return vec
+
+    def clear(self) -> None:
+        with self._lock:
+            self._hist.clear()
+
+    @property
+    def has_data(self) -> bool:
+        return bool(self._hist)
+
+    def newest_stamp_ns(self) -> Optional[int]:
+        with self._lock:
+            return self._hist[-1][0] if self._hist else None
+
+    def sample(self, stamp_ns: Optional[int] = None) -> Optional[np.ndarray]:
+        """The joint vector at `stamp_ns` (linear interpolation, held at the ends); newest if None."""
+        with self._lock:
+            if not self._hist:
+                return None
+            if stamp_ns is None or len(self._hist) == 1 or stamp_ns >= self._hist[-1][0]:
+                return self._hist[-1][1].copy()
+            if stamp_ns <= self._hist[0][0]:
+                return self._hist[0][1].copy()
+            stamps = np.fromiter((s for s, _ in self._hist), dtype=np.int64, count=len(self._hist))
+            i = int(np.searchsorted(stamps, stamp_ns))
+            s0, v0 = self._hist[i - 1]
+            s1, v1 = self._hist[i]
+        w = 0.0 if s1 == s0 else (stamp_ns - s0) / (s1 - s0)
+        return (1 - w) * v0 + w * v1
+
+
+@dataclass
+class StepTiming:
+    step_ms: float = 0.0
+    render_ms: float = 0.0
+
+
+class LiveSimulator:
+    """A running rollout: state, scene, robot conditioning and cameras."""
+
+    def __init__(self, sim: Simulator, bundle: SceneBundle, robot: RobotModel,
+                 camera_names: Optional[Sequence[str]] = None, render_scale: float = 1.0) -> None:
+        self.sim = sim.eval()
+        self.bundle = bundle
+        self.robot = robot
+        self.scene = bundle.scene_context()
+        self.base_to_sim = bundle.base_to_sim_sim3()
+        specs = {c.name: c for c in bundle.cameras}
+        names = list(camera_names) if camera_names else list(specs)
+        unknown = [n for n in names if n not in specs]
+        if unknown:
+            raise ValueError(f"unknown camera(s) {', '.join(unknown)}; the scene has {', '.join(specs) or 'none'}")
+        self.cameras = [specs[n] for n in names]
+        self.render_scale = float(render_scale)
+        ext = list(robot.config.gripper.external_joints) if robot.config.gripper else []
+        self.required_joints = list(dict.fromkeys(list(robot.joint_names) + list(robot.gripper_joint_names) + ext))
+        self._lock = threading.Lock()  # guards (state, template, steps) for readers
+        self._sim_lock = threading.Lock()  # one step or reset at a time (they share the bound hierarchy)
+        self.template: Splats = bundle.splats
+        self.state: Optional[SimState] = None
+        self.steps = 0
+        self.reset(bundle.splats)
+
+    # ------------------------------------------------------------------ scene
+    def reset(self, splats: Splats) -> int:
+        """Swap in a new initial scene atomically; returns its splat count."""
+        splats.validate()
+        sim = self.sim
+        with self._sim_lock, torch.no_grad():
+            if sim.hierarchy is None or sim.hierarchy.sizes[0] != len(splats):
+                sim.bind(splats)
+            state = sim.init_state(splats, self.scene)
+            with self._lock:
+                self.template = splats
+                self.state = state
+                self.steps = 0
+        return len(splats)
+
+    # ------------------------------------------------------------------ robot
+    def action(self, joint_vec: np.ndarray) -> RobotAction:
+        """Joint vector (``required_joints`` order) -> RobotAction in the sim frame."""
+        names = self.required_joints
+        pos = torch.as_tensor(joint_vec, dtype=self.robot.dtype)[None]
+        q = self.robot.q_from_joint_state(names, pos)
+        if self.robot.gripper_joint_names:
+            opening, c = self.robot.gripper_state(names, pos)
+        else:
+            opening, c = torch.zeros(1, dtype=self.robot.dtype), torch.zeros(1, dtype=self.robot.dtype)
+        cp = self.robot.control_points(q, opening.reshape(1))[0]
+        cp_sim = self.base_to_sim.apply_points(cp)
+        cp_sim = torch.as_tensor(cp_sim, dtype=self.sim.dtype)
+        return RobotAction(cp_sim, gripper=float(c.reshape(-1)[0]))
+
+    def link_pose_sim(self, joint_vec: np.ndarray, link: str) -> np.ndarray:
+        pos = torch.as_tensor(joint_vec, dtype=self.robot.dtype)[None]
+        q = self.robot.q_from_joint_state(self.required_joints, pos)
+        T_base_link = self.robot.fk(q, links=[link])[link][0].detach().cpu().numpy().astype(np.float64)
+        return np.asarray(self.base_to_sim.matrix(), dtype=np.float64) @ T_base_link
+
+    def camera_rig(self, joint_vec: Optional[np.ndarray]) -> Cameras:
+        Ks, c2w, names = [], [], []
+        w = self.cameras[0].width
+        h = self.cameras[0].height
+        for c in self.cameras:
+            if (c.width, c.height) != (w, h):
+                raise ValueError("all rendered cameras must share one image size")
+            if c.cam_to_sim is not None:
+                T = c.cam_to_sim
+            else:
+                if joint_vec is None:
+                    raise ValueError(f"camera '{c.name}' is mounted on '{c.mount_link}': a joint state is needed")
+                T = self.link_pose_sim(joint_vec, c.mount_link) @ c.link_to_cam
+            Ks.append(c.K)
+            c2w.append(T)
+            names.append(c.name)
+        cams = Cameras.from_cam_to_world(np.stack(Ks), np.stack(c2w), w, h, names=names)
+        return cams.scaled(self.render_scale) if self.render_scale != 1.0 else cams
+
+    # ------------------------------------------------------------------ step
+    def step(self, joint_vec: Optional[np.ndarray]) -> tuple[SimState, float]:
+        """One physics step from the current state; returns (new state, wall ms)."""
+        t0 = time.perf_counter()
+        act = self.action(joint_vec) if joint_vec is not None else None
+        with self._sim_lock:
+            state = self.state
+            with torch.no_grad():
+                new = self.sim.step(state, act)
+            if not torch.isfinite(new.means).all():
+                raise FloatingPointError("the simulator produced non-finite splat positions")
+            with self._lock:
+                self.state = new
+                self.steps += 1
+        return new, (time.perf_counter() - t0) * 1e3
+
+    def snapshot(self) -> tuple[SimState, Splats, int]:
+        with self._lock:
+            return self.state, self.template, self.steps
+
+    def render(self, state: SimState, template: Splats, joint_vec: Optional[np.ndarray]) -> tuple[RenderOutput, Cameras]:
+        cams = self.camera_rig(joint_vec)
+        with torch.no_grad():
+            out = render(state.means, state.covs, template.colors().to(state.means.dtype),
+                         template.opacities.to(state.means.dtype), cams, background=torch.zeros(3))
+        return out, cams
+
+    def current_splats(self) -> Splats:
+        state, template, _ = self.snapshot()
+        return state.to_splats(template)
+
+
+def load_live(checkpoint: str, scene: str, camera_names: Optional[Sequence[str]] = None,
+              render_scale: float = 1.0, device: str = "cpu") -> LiveSimulator:
+    """Build a LiveSimulator from a checkpoint file and a scene bundle directory."""
+    from .core.checkpoint import load_checkpoint
+
+    sim = load_checkpoint(checkpoint, map_location=device)
+    bundle = SceneBundle.load(scene)
+    robot = RobotModel.from_config(bundle.robot_config)
+    return LiveSimulator(sim, bundle, robot, camera_names=camera_names, render_scale=render_scale)
