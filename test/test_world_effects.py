@@ -1,0 +1,92 @@
+"""Switchable effects: each one moves the object's final state, never the robot's joints,
+and is recorded only in the sidecar (not in the bag)."""
+
+from __future__ import annotations
+
+import json
+import os
+import sqlite3
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+from soma_ros.world import EFFECTS, generate_dataset, load_world_config, parse_effects  # noqa: E402
+from soma_ros.world.effect_report import measure_effects, read_states  # noqa: E402
+
+#: (task, effects) measured per object: all effects on the rope (the cheapest object), dragged so
+#: that the table matters too; one each on the cloth and the doll (the effect report covers the rest).
+CASES = {"rope": ("drag", list(EFFECTS)), "cloth": ("fold", ["wind"]), "doll": ("lift", ["slip"])}
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_world_config()
+
+
+@pytest.fixture(scope="module")
+def reports(cfg, tmp_path_factory):
+    work = tmp_path_factory.mktemp("effects")
+    return {obj: measure_effects(cfg, obj, "tiny", seed=0, index=0, effects=effs, task=task, work_dir=work)
+            for obj, (task, effs) in CASES.items()}
+
+
+@pytest.mark.parametrize("obj", list(CASES))
+def test_each_effect_moves_the_object_but_not_the_robot(reports, obj):
+    rep = reports[obj]
+    assert rep["task"] == CASES[obj][0] and set(rep["effects"]) == set(CASES[obj][1])
+    for eff, r in rep["effects"].items():
+        print(f"{obj} {rep['task']} {eff}: final state moved {r['final_mean_mm']:.1f} mm mean, "
+              f"{r['final_max_mm']:.1f} mm max; arm joints differ by {r['arm_max_diff_rad']:.1e} rad")
+        assert r["final_mean_mm"] >= 1.0, (obj, eff, r)
+        assert r["arm_max_diff_rad"] == 0.0, (obj, eff, r)
+
+
+def test_baseline_is_deterministic(cfg, tmp_path):
+    """Without this, 'the effect moved the object' could be run-to-run noise."""
+    a = generate_dataset(cfg, "rope", "tiny", tmp_path / "a", episodes=1, seed=5, frames=20, progress=False)
+    b = generate_dataset(cfg, "rope", "tiny", tmp_path / "b", episodes=1, seed=5, frames=20, progress=False)
+    _, ja, pa = read_states(tmp_path / "a" / a["episodes"][0]["bag"])
+    _, jb, pb = read_states(tmp_path / "b" / b["episodes"][0]["bag"])
+    assert (ja == jb).all() and (pa == pb).all()
+
+
+def test_effects_are_only_in_the_sidecar(cfg, tmp_path):
+    on = generate_dataset(cfg, "rope", "tiny", tmp_path / "on", episodes=1, seed=1, frames=8, progress=False,
+                          effects="wind,slip,stiff")
+    off = generate_dataset(cfg, "rope", "tiny", tmp_path / "off", episodes=1, seed=1, frames=8, progress=False)
+    name = on["episodes"][0]["name"]
+    meta = json.loads((tmp_path / "on" / f"{name}.meta.json").read_text())
+    assert set(meta["effects"]) == {"wind", "slip", "stiff"}
+    assert meta["effects"]["wind"]["velocity"] == cfg.effects.wind.velocity
+    assert meta["object_params"]["young_pa"] == pytest.approx(cfg.objects["rope"].young * cfg.effects.stiff.young_scale)
+    meta_off = json.loads((tmp_path / "off" / f"{name}.meta.json").read_text())
+    assert meta_off["effects"] == {}
+    # The bags have the same topics, types and counts; nothing in them names an effect.
+    md_on = (tmp_path / "on" / name / "metadata.yaml").read_text()
+    md_off = (tmp_path / "off" / name / "metadata.yaml").read_text()
+    strip = lambda s: [ln for ln in s.splitlines() if "duration" not in ln and "nanoseconds" not in ln and "size" not in ln]  # noqa: E731
+    assert strip(md_on) == strip(md_off)
+    db = sqlite3.connect(next((tmp_path / "on" / name).glob("*.db3")))
+    tables = [r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type='table'")]
+    text = md_on.lower() + " ".join(str(row) for t in tables if t != "messages" for row in db.execute(f"SELECT * FROM {t}"))
+    db.close()
+    for word in ("wind", "slip", "stiff", "young", "effect"):
+        assert word not in text.lower()
+
+
+def test_parse_effects():
+    assert parse_effects("slip, wind,,slip") == ["wind", "slip"]
+    assert parse_effects(None) == [] and parse_effects("") == []
+    with pytest.raises(ValueError, match="unknown effect 'gravity'"):
+        parse_effects("gravity")
+
+
+def test_effects_yaml_names_every_effect():
+    import yaml
+
+    from soma_ros.paths import config_dir
+
+    data = yaml.safe_load(Path(config_dir() / "world" / "effects.yaml").read_text())
+    assert set(data) == set(EFFECTS)
