@@ -42,22 +42,30 @@ class JointStateFilter:
     different lengths, duplicate names, missing required joints, non-finite
     values of required joints, stamps older than the newest accepted one.
     Unknown extra joints are ignored and order does not matter.
+
+    With ``max_future_s`` set, ``push(..., now_ns=clock)`` also rejects stamps more
+    than that far ahead of the receiver's clock: accepted, such a stamp would make
+    every later (correctly stamped) message look older and lock the stream out.
     """
 
-    def __init__(self, required: Sequence[str], history: int = 64) -> None:
+    def __init__(self, required: Sequence[str], history: int = 64, max_future_s: Optional[float] = None) -> None:
         if not required:
             raise ValueError("JointStateFilter needs at least one required joint")
         self.required = list(required)
+        self.max_future_ns = None if max_future_s is None else int(max_future_s * 1e9)
         self._hist: deque[tuple[int, np.ndarray]] = deque(maxlen=history)
         self._lock = threading.Lock()
         self.received = 0
         self.rejected = 0
         self.last_reason = ""
 
-    def push(self, names: Sequence[str], positions: Sequence[float], stamp_ns: int) -> np.ndarray:
+    def push(self, names: Sequence[str], positions: Sequence[float], stamp_ns: int,
+             now_ns: Optional[int] = None) -> np.ndarray:
         self.received += 1
         try:
             vec = self._validate(names, positions, stamp_ns)
+            if now_ns is not None and self.max_future_ns is not None and stamp_ns > now_ns + self.max_future_ns:
+                raise JointStateRejected(f"stamp is {(stamp_ns - now_ns) / 1e9:.3f} s ahead of the clock")
         except JointStateRejected as exc:
             self.rejected += 1
             self.last_reason = str(exc)
