@@ -252,7 +252,10 @@ def read_ply(
     q = np.stack([props[f"rot_{i}"] for i in range(4)], axis=1).astype(np.float64)
     qn = np.linalg.norm(q, axis=1, keepdims=True)
     bad = qn[:, 0] < 1e-12
-    q = np.where(bad[:, None], np.array([1.0, 0.0, 0.0, 0.0]), q / np.where(qn > 0, qn, 1.0))
+    # Rows that are already unit length (to float32 precision) are kept verbatim, so that
+    # a file read and written again is byte-identical; the others are normalised.
+    unit = np.abs(qn - 1.0) < 1e-6
+    q = np.where(bad[:, None], np.array([1.0, 0.0, 0.0, 0.0]), np.where(unit, q, q / np.where(qn > 0, qn, 1.0)))
     mass = T(props["mass"]) if "mass" in props else None
     attr_names = _indexed(props, "attr_")
     attrs = T(np.stack([props[k] for k in attr_names], axis=1)) if attr_names else None
