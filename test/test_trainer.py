@@ -1,0 +1,305 @@
+"""`soma train` end to end on a reference-world tiny rope dataset (grasp-and-lift episodes).
+
+One training run (config/train/tiny.yaml, CPU) is started as a subprocess, killed
+with SIGKILL after its second checkpoint and started again with the same command:
+
+* (c) the second process resumes from the last checkpoint: iteration counter,
+  weights (checksum) and log carry on;
+* (a) the finished run's validation loss (held-out episodes, full-rate open-loop
+  rollouts) is well below the untrained model's, and a rollout of the trained model
+  moves with the gripper: the splats the gripper closes on rise with it;
+* (b) a 2-process `torchrun` run on CPU (DDP over gloo) trains, keeps the ranks'
+  weights identical, and writes the same checkpoint format.
+
+CI budget (2 cores): the training run takes about 3 minutes, the torchrun run and
+the fixtures about a minute more.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+ROOT = Path(__file__).resolve().parents[1]
+KILL_AFTER_ITERATION = 30  # two epochs of the tiny config: the second checkpoint
+
+
+def _env() -> dict:
+    env = dict(os.environ)
+    env.update(PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1", MUJOCO_GL="egl", PYTHONUNBUFFERED="1")
+    return env
+
+
+@pytest.fixture(scope="module")
+def lift_dataset(tmp_path_factory) -> Path:
+    """8 tiny grasp-and-lift rope episodes (6 train / 2 test), 40 frames each."""
+    from soma_ros.world import generate_dataset, load_world_config
+
+    out = tmp_path_factory.mktemp("trainer") / "rope_lift"
+    generate_dataset(load_world_config(), "rope", "tiny", out, episodes=8, seed=0, task="lift", progress=False)
+    return out
+
+
+def _read_state(run: Path):
+    from trainer.train import TRAIN_STATE
+
+    p = run / TRAIN_STATE
+    if not p.is_file():
+        return None
+    try:
+        return torch.load(p, map_location="cpu", weights_only=True)
+    except Exception:  # being replaced right now: try again
+        return None
+
+
+@pytest.fixture(scope="module")
+def trained_run(lift_dataset, tmp_path_factory) -> dict:
+    """Train with `soma train --config tiny`, SIGKILL it after the checkpoint at iteration >= 30,
+    rerun the same command to completion."""
+    run = tmp_path_factory.mktemp("trainer") / "run"
+    cmd = [sys.executable, "-m", "soma_ros.cli", "train", "--data", str(lift_dataset), "--config", "tiny",
+           "--out", str(run), "--quiet"]
+    t0 = time.time()
+    p = subprocess.Popen(cmd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    killed_state = None
+    try:
+        while time.time() - t0 < 900:
+            if p.poll() is not None:
+                break
+            st = _read_state(run)
+            if st is not None and int(st["iteration"]) >= KILL_AFTER_ITERATION:
+                p.send_signal(signal.SIGKILL)
+                break
+            time.sleep(0.3)
+    finally:
+        if p.poll() is None:
+            p.kill()
+        first_out = p.communicate(timeout=60)[0]
+    assert p.returncode == -signal.SIGKILL, f"the first run was not killed mid-way (rc {p.returncode}):\n{first_out[-3000:]}"
+    killed_state = _read_state(run)
+    assert killed_state is not None
+    t1 = time.time()
+    second = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=1200)
+    assert second.returncode == 0, second.stdout[-3000:] + second.stderr[-3000:]
+    return {"run": run, "killed_iteration": int(killed_state["iteration"]),
+            "killed_checksum": float(killed_state["weights_checksum"]), "first_out": first_out,
+            "second_out": second.stdout + second.stderr, "summary": json.loads((run / "summary.json").read_text()),
+            "seconds_first": t1 - t0, "seconds_second": time.time() - t1}
+
+
+# --------------------------------------------------------------------------- (c) resume
+def test_resume_after_kill_continues_from_the_last_checkpoint(trained_run):
+    run, k = trained_run["run"], trained_run["killed_iteration"]
+    s = trained_run["summary"]
+    assert KILL_AFTER_ITERATION <= k < s["total_iterations"]
+    assert s["complete"] and s["iterations"] == s["total_iterations"]
+    assert s["resumed_from"] == [k]
+    # the second process started from the killed run's weights (same checksum) ...
+    assert f"resuming from iteration {k} (weights checksum {trained_run['killed_checksum']:.6f})" in trained_run["second_out"]
+    # ... and did only the remaining iterations: every training iteration is logged exactly once
+    with open(run / "log.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    its = [int(r["iteration"]) for r in rows if r["kind"] == "train"]
+    assert its == list(range(1, s["total_iterations"] + 1))
+    val_its = [int(r["iteration"]) for r in rows if r["kind"] == "val"]
+    assert val_its == sorted(set(val_its)) and val_its[0] == 0 and val_its[-1] == s["total_iterations"]
+    from soma_ros.core.checkpoint import read_checkpoint
+
+    extra = read_checkpoint(run / "checkpoint.pt")["extra"]
+    assert extra["iteration"] == s["total_iterations"] and extra["complete"] and extra["resumed_from"] == [k]
+
+
+# --------------------------------------------------------------------------- (a) learning
+def test_training_lowers_validation_loss_and_outputs(trained_run):
+    run = trained_run["run"]
+    s = trained_run["summary"]
+    print(f"\ntiny run: {trained_run['seconds_first']:.0f} s until the kill + {trained_run['seconds_second']:.0f} s "
+          f"resumed; val loss {s['val_loss_untrained']:.4f} (untrained) -> {s['val_loss']:.4f}; history "
+          f"{json.dumps(s['val_history'])}")
+    first, last = s["val_history"][0], s["val_history"][-1]
+    assert first["iteration"] == 0 and last["iteration"] == s["total_iterations"]
+    # well below the untrained model's validation loss ...
+    assert s["val_loss"] < 0.75 * s["val_loss_untrained"], s["val_history"]
+    # ... mostly because the predicted object is where the cameras see it (observed points are
+    # closer); the paper's image term alone improves too, but less (the rope is 2-3 px wide in
+    # the fixed cameras at 160x120: it only drops once the prediction is nearly pixel-exact)
+    assert last["points"] < 0.6 * first["points"], s["val_history"]
+    assert last["img"] < first["img"], s["val_history"]
+    # outputs of a run
+    for name in ("checkpoint.pt", "train_state.pt", "log.csv", "loss.png", "train_config.yaml", "scene/scene.json",
+                 "scene/splats.ply", "scene/hierarchy.pt"):
+        assert (run / name).is_file(), name
+    assert (run / "loss.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def _follow(sim, store, names, bundle):
+    from trainer.train import gripper_follow, rollout_full
+
+    out = []
+    for name in names:
+        ep = store.episode(name)
+        states = rollout_full(sim, ep, store.initial_splats(name), bundle)
+        f = gripper_follow(states, ep, torch.as_tensor(bundle.table_normal))
+        assert f is not None and f["n_splats"] > 20 and f["gripper_rise"] > 0.08, f
+        out.append(f)
+    return out
+
+
+def test_trained_model_follows_the_lift(trained_run, lift_dataset):
+    """Roll the checkpoint out at the frame rate on the held-out lift episodes, as the live node
+    would (checkpoint + scene bundle): the splats within 3 cm of the gripper when it closes rise
+    with it; the untrained model's stay on the table."""
+    from soma_ros.core.checkpoint import load_checkpoint
+    from soma_ros.core.robot import RobotModel
+    from soma_ros.core.simulator import Simulator
+    from trainer.config import load_train_config
+    from trainer.dataset import load_dataset
+    from trainer.train import EpisodeStore, load_scene
+
+    run = trained_run["run"]
+    cfg = load_train_config(run / "train_config.yaml")
+    bundle, hier = load_scene(run / "scene")
+    robot = RobotModel.from_config(cfg.robot, dtype=torch.float64)
+    refs = load_dataset(lift_dataset, "test")
+    store = EpisodeStore(refs, robot, cfg, bundle, hier, run / "cache")
+    names = [r.name for r in refs]
+    sim = load_checkpoint(run / "checkpoint.pt").eval()
+    torch.manual_seed(cfg.seed)
+    untrained = Simulator(cfg.model_config())
+    untrained.bind_hierarchy(hier)
+    untrained.eval()
+    trained_f = _follow(sim, store, names, bundle)
+    untrained_f = _follow(untrained, store, names, bundle)
+    print("\nfollow (splat rise / gripper rise): trained", [round(f["ratio"], 3) for f in trained_f],
+          "untrained", [round(f["ratio"], 3) for f in untrained_f])
+    for f in untrained_f:
+        assert abs(f["ratio"]) < 0.1
+    for f in trained_f:  # rises with the gripper (it overshoots in the hold phase: see the report)
+        assert 0.5 < f["ratio"] < 2.5, f
+
+
+# --------------------------------------------------------------------------- (b) torchrun
+def test_torchrun_two_processes_on_cpu(trained_run, lift_dataset, tmp_path):
+    from soma_ros.core.checkpoint import load_checkpoint, read_checkpoint
+
+    run2 = tmp_path / "ddp"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+           "-m", "soma_ros.cli", "train", "--data", str(lift_dataset), "--config", "tiny", "--out", str(run2),
+           "--set", "schedule.iters_per_epoch=3", "--set", "schedule.stage1.epochs=1",
+           "--set", "schedule.stage2.epochs=1", "--quiet"]
+    p = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    s = json.loads((run2 / "summary.json").read_text())
+    assert s["world_size"] == 2 and s["complete"] and s["iterations"] == 6
+    ranks = [json.loads((run2 / "dist" / f"rank_{r}.json").read_text()) for r in (0, 1)]
+    # DDP kept the replicas identical while each rank rolled out its own episodes
+    assert ranks[0]["weights_checksum"] == ranks[1]["weights_checksum"]
+    assert ranks[0]["episodes"] != ranks[1]["episodes"]
+    single = read_checkpoint(trained_run["run"] / "checkpoint.pt")
+    multi = read_checkpoint(run2 / "checkpoint.pt")
+    assert multi["format"] == single["format"]
+    assert set(multi["state_dict"]) == set(single["state_dict"])
+    assert all(multi["state_dict"][k].shape == single["state_dict"][k].shape for k in single["state_dict"])
+    assert multi["model_config"] == single["model_config"]
+    assert multi["extra"]["world_size"] == 2 and multi["extra"]["iteration"] == 6
+    sim = load_checkpoint(run2 / "checkpoint.pt")
+    assert sim.hierarchy.sizes == load_checkpoint(trained_run["run"] / "checkpoint.pt").hierarchy.sizes
+
+
+# --------------------------------------------------------------------------- units
+def test_at_rest_prefix_carries_no_gradient(lift_dataset):
+    """Steps before the gripper can touch the object are exact no-ops, so running them without
+    gradients (what the trainer does) gives the same gradient as a full-gradient rollout (in
+    float64; in float32 the full-gradient version carries ~1e-3 relative cancellation noise from
+    the prefix steps, whose contributions cancel only mathematically)."""
+    from soma_ros.core.robot import RobotModel
+    from soma_ros.core.simulator import Simulator
+    from trainer.config import load_train_config
+    from trainer.dataset import load_dataset
+    from trainer.scene_setup import setup_scene
+    from trainer.train import RolloutLoss, RolloutPlan, contact_frame, rest_reach
+
+    cfg = load_train_config("tiny", {"scene": {"num_splats": 300, "photometric_iters": 0}})
+    robot = RobotModel.from_config("panda", dtype=torch.float64)
+    from trainer.dataset import prepare_episode
+
+    ref = load_dataset(lift_dataset, "train")[0]
+    ep = prepare_episode(ref.bag, robot, cfg.data)
+    mc = cfg.model_config()
+    setup = setup_scene(ep, cfg.scene, "rope", "panda", 0.05, mc.hierarchy.thresholds)
+    torch.manual_seed(0)
+    sim = Simulator(mc)
+    sim.bind_hierarchy(setup.hierarchy)
+    sim.to(dtype=torch.float64)
+    c = contact_frame(ep, setup.bundle.splats, rest_reach(sim))
+    assert 3 < c < ep.num_frames - 4, c
+    frames = list(range(1, c + 4))
+    sup = [f for f in frames if f >= c]
+    loss_mod = RolloutLoss(sim, cfg, setup.bundle)
+    grads = []
+    for plan in (RolloutPlan(ref.name, 1, [], frames, sup),
+                 RolloutPlan(ref.name, 1, frames[: c - 1], frames[c - 1:], sup)):
+        sim.zero_grad()
+        loss, _ = loss_mod(ep, setup.bundle.splats, plan)
+        loss.backward()
+        grads.append(torch.cat([p.grad.flatten() for p in sim.parameters() if p.grad is not None]))
+    assert grads[0].abs().max() > 0
+    rel = float((grads[0] - grads[1]).norm() / grads[0].norm())
+    assert rel < 1e-9, rel
+
+
+def test_schedule_plans():
+    import numpy as np
+
+    from trainer.config import load_train_config
+    from trainer.train import plan_rollout, stage_at
+
+    cfg = load_train_config("tiny")
+    rng = np.random.default_rng(0)
+    i0 = stage_at(cfg, 0)
+    assert (i0.stage, i0.stride, i0.steps) == (1, 4, 2)
+    assert stage_at(cfg, 1).steps == 4
+    p = plan_rollout(i0, "e", 40, rng, contact=13, sim_step="frame")
+    assert p.stride == 1 and p.supervised == [16, 20] and p.prefix == list(range(1, 13)) and p.frames == list(range(13, 21))
+    p = plan_rollout(i0, "e", 40, rng, contact=13, sim_step="stride")
+    assert p.stride == 4 and p.prefix == [4, 8, 12] and p.frames == [16, 20]
+    i2 = stage_at(cfg, cfg.schedule.stage1.epochs)
+    assert (i2.stage, i2.stride, i2.steps) == (2, 1, 6)
+    for _ in range(20):
+        p = plan_rollout(i2, "e", 40, rng, contact=13)
+        assert len(p.frames) == 6 and p.frames[-1] <= 39 and p.frames[-1] >= 13
+        assert p.prefix == list(range(1, p.frames[0]))
+
+
+def test_configs_and_cli_overrides():
+    from soma_ros.commands.train import parse_overrides
+    from trainer.config import ConfigError, load_train_config
+
+    paper = load_train_config("paper")
+    assert paper.model_config().gnn.latent == 128 and paper.scene.num_splats == 13000
+    assert (paper.schedule.stage1.stride, paper.schedule.stage1.length_growth, paper.schedule.stage2.window) == (10, 3, 13)
+    assert paper.optim.lr == 4e-4 and paper.optim.grad_clip == 1.0 and paper.loss.lam == 0.9
+    assert paper.loss.points_weight == 0 and paper.loss.depth_weight == 0  # image-only, as the paper
+    over = parse_overrides(["schedule.iters_per_epoch=3", "loss.lam=0.8", "data.cameras=[cam_front, cam_wrist]"])
+    cfg = load_train_config("tiny", over)
+    assert cfg.schedule.iters_per_epoch == 3 and cfg.loss.lam == 0.8 and cfg.data.cameras == ["cam_front", "cam_wrist"]
+    with pytest.raises(ConfigError, match="loss.lamb: unknown key"):
+        load_train_config("tiny", {"loss": {"lamb": 0.5}})
+    with pytest.raises(ConfigError, match="schedule.stage1.sim_step"):
+        load_train_config("tiny", {"schedule": {"stage1": {"sim_step": "sometimes"}}})
+    with pytest.raises(ValueError, match="expected KEY=VALUE"):
+        parse_overrides(["lam"])
+    p = subprocess.run([sys.executable, "-m", "soma_ros.cli", "train", "--help"], capture_output=True, text=True,
+                       env=_env(), timeout=120)
+    assert p.returncode == 0 and "--data" in p.stdout and "torchrun" in p.stdout

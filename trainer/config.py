@@ -1,0 +1,392 @@
+"""Training configuration: dataclasses loaded strictly from YAML (``config/train/*.yaml``).
+
+One :class:`TrainConfig` per run, with a section per concern:
+
+=============  ==========================================================================
+section        what it configures
+=============  ==========================================================================
+(top level)    model config (+ ``model_overrides`` merged into it), object config, robot
+               config, seed, device
+data           bag ingestion: cameras, topic names, synchronisation, training resolution,
+               which manifest splits train and validate
+scene          scene set-up: depth fusion, splat count, photometric refinement, table
+               plane, per-episode alignment of G_0
+loss           masked L2 + D-SSIM (lambda), momentum regulariser, optional depth term
+schedule       the two-stage multi-resolution temporal schedule
+optim          Adam, gradient clipping
+run            checkpoint / validation / logging cadence
+=============  ==========================================================================
+
+Loading is strict (unknown keys and wrong types raise a one-line
+:class:`~soma_ros.core.config.ConfigError` naming the key path), using the
+core's generic :func:`~soma_ros.core.config.from_dict`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Optional, Union
+
+import yaml
+
+from soma_ros.core.config import ConfigError, from_dict, to_dict
+from soma_ros.paths import resolve_config
+
+__all__ = [
+    "ConfigError",
+    "TopicNames",
+    "DataConfig",
+    "SceneConfig",
+    "LossConfig",
+    "Stage1Config",
+    "Stage2Config",
+    "ScheduleConfig",
+    "OptimConfig",
+    "RunConfig",
+    "TrainConfig",
+    "load_train_config",
+]
+
+
+@dataclass
+class TopicNames:
+    """Topic names of the rig (``{cam}`` = camera name); see :class:`trainer.bags.TopicConfig`."""
+
+    joint_states: str = "/joint_states"
+    color: str = "/{cam}/color/image_raw"
+    camera_info: str = "/{cam}/color/camera_info"
+    depth: str = "/{cam}/aligned_depth_to_color/image_raw"
+    object_mask: str = "/{cam}/object_mask"
+    robot_mask: str = "/{cam}/robot_mask"
+    tf_static: str = "/tf_static"
+    world_frame: str = "world"
+
+    def validate(self, where: str = "data.topics") -> None:
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if not v:
+                raise ConfigError(f"{where}.{f.name}: must not be empty")
+        for f in ("color", "camera_info", "depth", "object_mask", "robot_mask"):
+            if "{cam}" not in getattr(self, f):
+                raise ConfigError(f"{where}.{f}: must contain '{{cam}}', got {getattr(self, f)!r}")
+
+
+@dataclass
+class DataConfig:
+    """Bag ingestion and the train / validation episode lists.
+
+    ``cameras``: camera names to use (None = every camera found in the bag).
+    ``resolution_scale``: training images are the recorded ones resized by this
+    factor (the paper trains dynamics at the recorded resolution: 1.0).
+    ``max_frames``: use only the first frames of each episode (None = all).
+    ``train_split`` / ``val_split``: manifest splits; ``val_split: null`` holds out
+    the last ``val_holdout`` training episodes instead. ``tasks``: keep only
+    episodes of these tasks (None = all). ``max_*_episodes`` cap the lists.
+    """
+
+    cameras: Optional[list[str]] = None
+    topics: TopicNames = field(default_factory=TopicNames)
+    sync_tolerance_ms: float = 20.0
+    require_masks: bool = True
+    resolution_scale: float = 1.0
+    max_frames: Optional[int] = None
+    train_split: str = "train"
+    val_split: Optional[str] = "test"
+    val_holdout: int = 1
+    tasks: Optional[list[str]] = None
+    max_train_episodes: Optional[int] = None
+    max_val_episodes: Optional[int] = None
+    cache_episodes: int = 64
+
+    def validate(self, where: str = "data") -> None:
+        self.topics.validate(f"{where}.topics")
+        if not (self.sync_tolerance_ms > 0 and math.isfinite(self.sync_tolerance_ms)):
+            raise ConfigError(f"{where}.sync_tolerance_ms: must be > 0, got {self.sync_tolerance_ms}")
+        if not (0.05 <= self.resolution_scale <= 4.0):
+            raise ConfigError(f"{where}.resolution_scale: must lie in [0.05, 4], got {self.resolution_scale}")
+        if self.max_frames is not None and self.max_frames < 2:
+            raise ConfigError(f"{where}.max_frames: must be >= 2, got {self.max_frames}")
+        if self.val_holdout < 0 or self.cache_episodes < 1:
+            raise ConfigError(f"{where}: val_holdout >= 0 and cache_episodes >= 1 required")
+
+
+@dataclass
+class SceneConfig:
+    """Scene set-up from the first frame(s) of an episode (:mod:`trainer.scene_setup`).
+
+    ``num_splats``: target number of splats of G_0 (voxel size found by bisection
+    on the fused object points; the paper uses 13,000). ``frames``: frames whose
+    masked depth is fused. ``photometric_iters``: renderer-based refinement of
+    colours / opacities / scales on those frames (0 = off).
+    ``table_*``: RANSAC on non-object, non-robot depth within ``table_radius`` m
+    of the object. ``align_*``: per-episode initial state = G_0 moved onto the
+    episode's frame-0 object points, rigid ICP then an as-rigid-as-possible
+    refinement of the fine clusters (``align_nonrigid_iters: 0`` = rigid only).
+    """
+
+    source_episode: Optional[str] = None
+    frames: list[int] = field(default_factory=lambda: [0])
+    num_splats: int = 2000
+    splat_scale_factor: float = 0.6
+    opacity: float = 0.9
+    erode_px: int = 0
+    photometric_iters: int = 60
+    photometric_lr_color: float = 0.02
+    photometric_lr_scale: float = 0.01
+    photometric_lr_opacity: float = 0.02
+    table_radius: float = 0.4
+    table_threshold: float = 0.004
+    table_iters: int = 400
+    g: float = 9.81
+    align_icp_iters: int = 30
+    align_nonrigid_iters: int = 150
+    align_nonrigid_lr: float = 0.003
+    align_rigidity: float = 3.0
+    align_max_distance: float = 0.05
+
+    def validate(self, where: str = "scene") -> None:
+        if self.num_splats < 10:
+            raise ConfigError(f"{where}.num_splats: must be >= 10, got {self.num_splats}")
+        if not self.frames or any(f < 0 for f in self.frames):
+            raise ConfigError(f"{where}.frames: a non-empty list of frame indices >= 0, got {self.frames}")
+        for name in ("splat_scale_factor", "table_radius", "table_threshold", "g", "align_max_distance"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ConfigError(f"{where}.{name}: must be finite and > 0, got {v}")
+        if not 0 < self.opacity < 1:
+            raise ConfigError(f"{where}.opacity: must lie in (0, 1), got {self.opacity}")
+        if min(self.photometric_iters, self.align_icp_iters, self.align_nonrigid_iters, self.erode_px) < 0:
+            raise ConfigError(f"{where}: iteration counts and erode_px must be >= 0")
+
+
+@dataclass
+class LossConfig:
+    """L = mean over supervised frames and cameras of [lam * masked L2 + (1 - lam) * D-SSIM]
+    on object pixels (robot-occluded pixels excluded) + ``momentum_weight`` * L_mom
+    + ``depth_weight`` * masked L1 depth (metres; 0 = the paper's image-only loss).
+
+    ``camera_reduce``: "camera" = each camera's image loss on its own object pixels,
+    then the mean over cameras (the paper sums L_img over images; a camera where the
+    object is small weighs as much as the wrist camera where it fills the view);
+    "pixel" = one pooled loss over all cameras' object pixels.
+
+    L_mom is the simulator's :meth:`~soma_ros.core.simulator.Simulator.momentum_loss`
+    divided by the squared total mass (so it is in m^2: a mean squared
+    inconsistency of cluster centres), averaged over the supervised states.
+    """
+
+    lam: float = 0.9
+    dssim_window: int = 5
+    dssim_reduce: str = "image"
+    camera_reduce: str = "camera"
+    silhouette_weight: float = 0.0
+    momentum_weight: float = 1.0
+    depth_weight: float = 0.0
+    points_weight: float = 0.0
+    points_max: int = 1000
+
+    def validate(self, where: str = "loss") -> None:
+        if not 0.0 <= self.lam <= 1.0:
+            raise ConfigError(f"{where}.lam: must lie in [0, 1], got {self.lam}")
+        if self.points_max < 1:
+            raise ConfigError(f"{where}.points_max: must be >= 1, got {self.points_max}")
+        if self.dssim_window < 1 or self.dssim_window % 2 == 0:
+            raise ConfigError(f"{where}.dssim_window: must be an odd number >= 1, got {self.dssim_window}")
+        if self.dssim_reduce not in ("image", "mask"):
+            raise ConfigError(f"{where}.dssim_reduce: one of image, mask; got {self.dssim_reduce!r}")
+        if self.camera_reduce not in ("camera", "pixel"):
+            raise ConfigError(f"{where}.camera_reduce: one of camera, pixel; got {self.camera_reduce!r}")
+        if min(self.momentum_weight, self.depth_weight, self.silhouette_weight, self.points_weight) < 0:
+            raise ConfigError(f"{where}: momentum_weight and depth_weight must be >= 0")
+
+
+@dataclass
+class Stage1Config:
+    """Stage 1: temporal stride k from frame 0.
+
+    ``sim_step: stride`` (the paper's): the simulator steps k frames at a time
+    (dt_sim = k dt) and every step is supervised; ``frame``: it steps every frame
+    (dt_sim = dt, the rate it will run at) and every k-th frame is supervised.
+    The rollout covers ``length_start`` supervised frames in the first stage-1
+    epoch and ``length_growth`` more every epoch (paper: +3), counted from the
+    first frame where the gripper can touch the object (before it the object is
+    exactly at rest and those steps run without gradients), capped by the episode.
+    """
+
+    epochs: int = 10
+    stride: int = 10
+    length_start: int = 3
+    length_growth: int = 3
+    sim_step: str = "stride"
+
+    def validate(self, where: str = "schedule.stage1") -> None:
+        if self.epochs < 0 or self.stride < 1 or self.length_start < 1 or self.length_growth < 0:
+            raise ConfigError(f"{where}: epochs >= 0, stride >= 1, length_start >= 1, length_growth >= 0 required")
+        if self.sim_step not in ("stride", "frame"):
+            raise ConfigError(f"{where}.sim_step: one of stride, frame; got {self.sim_step!r}")
+
+
+@dataclass
+class Stage2Config:
+    """Stage 2: full frame rate on windows of ``window`` frames (paper code: 13) at a
+    random start; the state at the window start comes from a no-grad rollout."""
+
+    epochs: int = 5
+    window: int = 13
+
+    def validate(self, where: str = "schedule.stage2") -> None:
+        if self.epochs < 0 or self.window < 1:
+            raise ConfigError(f"{where}: epochs >= 0 and window >= 1 required")
+
+
+@dataclass
+class ScheduleConfig:
+    """Epochs of ``iters_per_epoch`` iterations (one episode rollout per iteration and rank)."""
+
+    iters_per_epoch: int = 100
+    stage1: Stage1Config = field(default_factory=Stage1Config)
+    stage2: Stage2Config = field(default_factory=Stage2Config)
+
+    def validate(self, where: str = "schedule") -> None:
+        if self.iters_per_epoch < 1:
+            raise ConfigError(f"{where}.iters_per_epoch: must be >= 1, got {self.iters_per_epoch}")
+        self.stage1.validate(f"{where}.stage1")
+        self.stage2.validate(f"{where}.stage2")
+        if self.stage1.epochs + self.stage2.epochs < 1:
+            raise ConfigError(f"{where}: stage1.epochs + stage2.epochs must be >= 1")
+
+    @property
+    def epochs(self) -> int:
+        return self.stage1.epochs + self.stage2.epochs
+
+    @property
+    def total_iters(self) -> int:
+        return self.epochs * self.iters_per_epoch
+
+
+@dataclass
+class OptimConfig:
+    """Adam (paper: lr 4e-4, gradient clipping 1.0). ``lr_final_factor``: cosine decay of
+    the learning rate to lr * factor over the run (1 = constant)."""
+
+    lr: float = 4e-4
+    betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
+    weight_decay: float = 0.0
+    grad_clip: float = 1.0
+    lr_final_factor: float = 1.0
+
+    def validate(self, where: str = "optim") -> None:
+        if not (self.lr > 0 and math.isfinite(self.lr)):
+            raise ConfigError(f"{where}.lr: must be > 0, got {self.lr}")
+        if len(self.betas) != 2 or not all(0 <= b < 1 for b in self.betas):
+            raise ConfigError(f"{where}.betas: two values in [0, 1), got {self.betas}")
+        if self.weight_decay < 0 or not self.grad_clip > 0 or not 0 < self.lr_final_factor <= 1:
+            raise ConfigError(f"{where}: weight_decay >= 0, grad_clip > 0, lr_final_factor in (0, 1] required")
+
+
+@dataclass
+class RunConfig:
+    """Cadence: checkpoint every ``checkpoint_every`` iterations (and at each epoch end),
+    validate every ``val_every_epochs`` epochs on at most ``val_episodes`` episodes,
+    rendering every ``val_frame_stride``-th frame of a full-rate open-loop rollout."""
+
+    checkpoint_every: int = 50
+    val_every_epochs: int = 1
+    val_episodes: int = 4
+    val_frame_stride: int = 2
+    progress: bool = True
+
+    def validate(self, where: str = "run") -> None:
+        if self.checkpoint_every < 1 or self.val_every_epochs < 1 or self.val_episodes < 1 or self.val_frame_stride < 1:
+            raise ConfigError(f"{where}: checkpoint_every, val_every_epochs, val_episodes, val_frame_stride must be >= 1")
+
+
+@dataclass
+class TrainConfig:
+    """A whole training run (see module docstring)."""
+
+    name: str = "custom"
+    model: str = "cpu"
+    model_overrides: dict = field(default_factory=dict)
+    object: str = "rope"
+    robot: str = "panda"
+    seed: int = 0
+    device: str = "auto"
+    data: DataConfig = field(default_factory=DataConfig)
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    run: RunConfig = field(default_factory=RunConfig)
+
+    def validate(self) -> "TrainConfig":
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ConfigError(f"device: one of auto, cpu, cuda; got {self.device!r}")
+        self.data.validate()
+        self.scene.validate()
+        self.loss.validate()
+        self.schedule.validate()
+        self.optim.validate()
+        self.run.validate()
+        return self
+
+    def to_dict(self) -> dict:
+        return to_dict(self)
+
+    @staticmethod
+    def from_dict(data: Mapping[str, Any], where: str = "") -> "TrainConfig":
+        return from_dict(TrainConfig, data, where).validate()
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+    def model_config(self):
+        """The simulator's :class:`~soma_ros.core.config.ModelConfig`: ``model`` (name or path)
+        with the object's hierarchy, then ``model_overrides`` merged over it."""
+        from soma_ros.core.config import ModelConfig, load_model_config
+
+        base = load_model_config(self.model, object=self.object)
+        if not self.model_overrides:
+            return base
+        return ModelConfig.from_dict(_merge(base.to_dict(), self.model_overrides), "model_overrides.")
+
+
+def load_train_config(name_or_path: Union[str, Path, Mapping[str, Any]], overrides: Optional[Mapping] = None) -> TrainConfig:
+    """``config/train/<name>.yaml``, a YAML path, or a mapping -> :class:`TrainConfig`.
+
+    ``overrides``: nested mapping merged over the file (e.g. ``{"schedule": {"iters_per_epoch": 2}}``).
+    """
+    if isinstance(name_or_path, Mapping):
+        data = dict(name_or_path)
+        where = ""
+    else:
+        p = Path(name_or_path)
+        if not (p.suffix in (".yaml", ".yml") and p.is_file()):
+            try:
+                p = resolve_config(f"train/{name_or_path}")
+            except FileNotFoundError:
+                p = resolve_config(name_or_path)
+        try:
+            data = yaml.safe_load(p.read_text())
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{p}: invalid YAML: {' '.join(str(exc).split())}") from None
+        if not isinstance(data, dict):
+            raise ConfigError(f"{p}: expected a mapping at the top level")
+        data.setdefault("name", p.stem)
+        where = f"{p.name}: "
+    if overrides:
+        data = _merge(data, overrides)
+    return TrainConfig.from_dict(data, where)
+
+
+def _merge(base: Mapping, over: Mapping) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out

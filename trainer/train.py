@@ -1,0 +1,883 @@
+"""`soma train`: fit the simulator offline from the bags of a dataset.
+
+    soma train --data DATASET --config tiny --out RUN          # one process
+    torchrun --nproc_per_node 2 -m soma_ros.cli train ...      # DDP (gloo on CPU, nccl on GPU)
+
+RUN gets ``checkpoint.pt`` (the simulator, :func:`~soma_ros.core.checkpoint.save_checkpoint`),
+``scene/`` (the scene bundle the nodes load, plus ``hierarchy.pt``), ``train_state.pt``
+(optimiser and schedule, for resuming), ``log.csv``, ``loss.png``, ``train_config.yaml``.
+
+One iteration (per rank): pick a training episode, roll the simulator out from
+that episode's initial state (G_0 aligned to its first frame, see
+:func:`trainer.scene_setup.align_splats`) under its recorded actions, render
+every predicted state in every camera and compare with the recorded frame:
+
+    L = mean_{frames, cameras} [lam masked-L2 + (1 - lam) D-SSIM](object pixels, robot pixels excluded)
+        + w_mom L_mom / M^2 + w_depth masked-L1(depth)
+
+then Adam with the gradient norm clipped. The temporal schedule is the
+paper's two-stage multi-resolution one: stage 1 steps ``stride`` frames at a
+time (dt_sim = stride x dt) from frame 0 with a rollout that grows every
+epoch; stage 2 runs at the frame rate on random windows whose start state
+comes from a no-grad rollout from frame 0.
+
+Resuming: ``train_state.pt`` (weights, optimiser, iteration, written
+atomically with every checkpoint) is picked up when the same command runs
+again in the same RUN; the iteration counter, the weights and the Adam
+moments carry on, and the per-iteration randomness is a function of the
+iteration, so a resumed run follows the same schedule.
+
+Distribution: ``torch.distributed`` is initialised from the torchrun
+environment (RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR/PORT); the loss module
+is wrapped in :class:`~torch.nn.parallel.DistributedDataParallel`; each rank
+rolls out its own episode per iteration; validation episodes are split over
+the ranks and reduced; rank 0 writes every file.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import os
+import tempfile
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from soma_ros.core.checkpoint import save_checkpoint
+from soma_ros.core.config import load_object_config
+from soma_ros.core.hierarchy import Hierarchy
+from soma_ros.core.metrics import masked_l2_dssim_loss
+from soma_ros.core.render import render
+from soma_ros.core.robot import RobotModel
+from soma_ros.core.scene_bundle import SceneBundle
+from soma_ros.core.simulator import SceneContext, SimState, Simulator
+from soma_ros.core.splats import Splats
+
+from .config import TrainConfig
+from .dataset import EpisodeData, EpisodeRef, load_dataset, prepare_episode
+from .scene_setup import align_splats, setup_scene
+
+__all__ = [
+    "DistInfo",
+    "RolloutPlan",
+    "EpisodeStore",
+    "RolloutLoss",
+    "stage_at",
+    "plan_rollout",
+    "contact_frame",
+    "rest_reach",
+    "frame_terms",
+    "total_loss",
+    "observed_points",
+    "rollout_full",
+    "validate",
+    "gripper_follow",
+    "load_scene",
+    "save_scene",
+    "train",
+    "TRAIN_STATE",
+    "LOG_COLUMNS",
+]
+
+TRAIN_STATE = "train_state.pt"
+TRAIN_STATE_FORMAT = "soma_ros.train_state/1"
+LOG_COLUMNS = ["kind", "iteration", "epoch", "stage", "stride", "steps", "episode", "loss", "img", "silhouette",
+               "depth", "points", "momentum", "grad_norm", "lr", "seconds", "follow"]
+
+
+# --------------------------------------------------------------------------- distribution
+@dataclass
+class DistInfo:
+    """Process layout from the torchrun environment (single process without it)."""
+
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+    @property
+    def distributed(self) -> bool:
+        return self.world > 1
+
+    def barrier(self) -> None:
+        if self.distributed:
+            torch.distributed.barrier()
+
+    @staticmethod
+    def from_env(device: str = "auto") -> "DistInfo":
+        world = int(os.environ.get("WORLD_SIZE", "1"))
+        rank = int(os.environ.get("RANK", "0"))
+        local = int(os.environ.get("LOCAL_RANK", "0"))
+        use_cuda = device == "cuda" or (device == "auto" and torch.cuda.is_available())
+        if device == "cuda" and not torch.cuda.is_available():
+            raise RuntimeError("config device 'cuda' but torch sees no CUDA device")
+        dev = torch.device(f"cuda:{local}") if use_cuda else torch.device("cpu")
+        if use_cuda:
+            torch.cuda.set_device(dev)
+        if world > 1 and not torch.distributed.is_initialized():
+            torch.distributed.init_process_group(backend="nccl" if use_cuda else "gloo")
+        return DistInfo(rank=rank, world=world, local_rank=local, device=dev)
+
+    def all_reduce_sum(self, values: Sequence[float]) -> list[float]:
+        if not self.distributed:
+            return [float(v) for v in values]
+        t = torch.tensor([float(v) for v in values], dtype=torch.float64,
+                         device=self.device if self.device.type == "cuda" else "cpu")
+        torch.distributed.all_reduce(t)
+        return t.cpu().tolist()
+
+
+# --------------------------------------------------------------------------- schedule
+@dataclass
+class StageInfo:
+    stage: int  # 1 or 2
+    epoch_in_stage: int
+    stride: int  # frames per simulator step
+    steps: int  # stage 1: rollout length in (strided) steps; stage 2: window length in frames
+
+
+def stage_at(cfg: TrainConfig, epoch: int) -> StageInfo:
+    s1, s2 = cfg.schedule.stage1, cfg.schedule.stage2
+    if epoch < s1.epochs:
+        return StageInfo(1, epoch, s1.stride, s1.length_start + s1.length_growth * epoch)
+    return StageInfo(2, epoch - s1.epochs, 1, s2.window)
+
+
+@dataclass
+class RolloutPlan:
+    """Which frames one training rollout steps through and supervises.
+
+    The simulator steps ``stride`` frames at a time (dt_sim = stride x dt) from frame 0.
+    ``prefix``: frames stepped without gradients first (stage 2's window start, and frames
+    before the gripper comes within reach of the object: there the state is exactly the
+    initial one -- the simulator's at-rest property -- so they carry no gradient);
+    ``frames``: the frames stepped with gradients; ``supervised``: those of ``frames`` whose
+    rendered loss counts (None = all).
+    """
+
+    episode: str
+    stride: int
+    prefix: list[int]
+    frames: list[int]
+    supervised: Optional[list[int]] = None
+
+    @property
+    def start(self) -> int:
+        return self.prefix[-1] if self.prefix else 0
+
+    @property
+    def loss_frames(self) -> list[int]:
+        return list(self.frames) if self.supervised is None else list(self.supervised)
+
+
+def plan_rollout(info: StageInfo, episode: str, num_frames: int, rng: np.random.Generator, contact: int = 0,
+                 sim_step: str = "stride") -> RolloutPlan:
+    """The rollout of one iteration.
+
+    Stage 1 (``sim_step="stride"``, the paper's): steps of k frames (dt_sim = k dt) at frames
+    k, 2k, ...; ``sim_step="frame"``: steps of one frame, supervised every k-th frame. The
+    rollout covers ``info.steps`` supervised frames from the first one at or after ``contact``
+    (the first frame with a control point within reach of the object; earlier frames are
+    provably at rest and go to the no-grad prefix). Stage 2: a window of ``info.steps``
+    frames at the frame rate, starting at random (never wholly before ``contact``).
+    """
+    T = num_frames
+    c = int(min(max(contact, 1), T - 1))
+    if info.stage == 1:
+        k = max(1, min(info.stride, T - 1))
+        sup_all = list(range(k, T, k))
+        first = next((i for i, f in enumerate(sup_all) if f >= c), len(sup_all) - 1)
+        sup = sup_all[first: first + max(1, info.steps)]
+        if sim_step == "stride":
+            return RolloutPlan(episode, k, sup_all[:first], sup, None)
+        start = min(c, sup[0])
+        return RolloutPlan(episode, 1, list(range(1, start)), list(range(start, sup[-1] + 1)), sup)
+    n = max(1, min(info.steps, T - 1))
+    lo = max(0, min(c - n, T - 1 - n))
+    s = int(rng.integers(lo, T - n))  # window = frames s+1 .. s+n
+    return RolloutPlan(episode, 1, list(range(1, s + 1)), list(range(s + 1, s + n + 1)))
+
+
+def contact_frame(ep: EpisodeData, init: Splats, reach: float) -> int:
+    """First frame whose control points come within ``reach`` (m) of the initial splats
+    (T if never): until then a simulator whose only non-reference effect is the robot
+    force leaves the object exactly at rest."""
+    x = init.means.detach().float()
+    for t in range(ep.num_frames):
+        d = torch.cdist(ep.control_points[t].float(), x).min()
+        if float(d) < reach:
+            return t
+    return ep.num_frames
+
+
+def rest_reach(sim: Simulator, margin: float = 0.01) -> Optional[float]:
+    """Robot-effect radius + margin when the robot force is the model's only effect outside the
+    at-rest reference (then frames before contact are exactly at rest), else None."""
+    robot_keys = [k for k in sim.effects.keys() if sim.effects[k].name == "robot"]
+    others = [k for k in sim.effects.keys() if not sim.effects[k].in_reference and k not in robot_keys]
+    if others or not robot_keys:
+        return None
+    return max(float(sim.effects[k].params.radius) for k in robot_keys) + margin
+
+
+def lr_at(cfg: TrainConfig, it: int) -> float:
+    o = cfg.optim
+    total = max(1, cfg.schedule.total_iters)
+    f = o.lr_final_factor + (1 - o.lr_final_factor) * 0.5 * (1 + math.cos(math.pi * min(it, total) / total))
+    return o.lr * f
+
+
+# --------------------------------------------------------------------------- data
+class EpisodeStore:
+    """Prepared episodes (LRU in memory) and their initial splats (cached on disk in ``cache_dir``)."""
+
+    def __init__(self, refs: Sequence[EpisodeRef], robot: RobotModel, cfg: TrainConfig, bundle: SceneBundle,
+                 hierarchy: Hierarchy, cache_dir: Optional[Path]) -> None:
+        self.refs = {r.name: r for r in refs}
+        self.robot = robot
+        self.cfg = cfg
+        self.bundle = bundle
+        self.hierarchy = hierarchy
+        self.cache_dir = cache_dir
+        self.base_to_sim = bundle.base_to_sim_sim3()
+        self._eps: "OrderedDict[str, EpisodeData]" = OrderedDict()
+        self._init: dict[str, Splats] = {}
+        self._contact: dict[str, int] = {}
+
+    def contact(self, name: str, reach: Optional[float]) -> int:
+        """:func:`contact_frame` of the episode (0 when ``reach`` is None: no at-rest shortcut)."""
+        if reach is None:
+            return 0
+        if name not in self._contact:
+            self._contact[name] = contact_frame(self.episode(name), self.initial_splats(name), reach)
+        return self._contact[name]
+
+    def episode(self, name: str) -> EpisodeData:
+        if name in self._eps:
+            self._eps.move_to_end(name)
+            return self._eps[name]
+        ref = self.refs[name]
+        data = self.cfg.data
+        if data.cameras is None and self.bundle.cameras:  # the rig's cameras: a bag missing one is an error
+            data = dataclasses.replace(data, cameras=[c.name for c in self.bundle.cameras])
+        ep = prepare_episode(ref.bag, self.robot, data, base_to_sim=self.base_to_sim, name=name)
+        self._eps[name] = ep
+        while len(self._eps) > self.cfg.data.cache_episodes:
+            self._eps.popitem(last=False)
+        return ep
+
+    def initial_splats(self, name: str) -> Splats:
+        """G_0 aligned to the episode's frame-0 object points (G_0 itself for its source episode)."""
+        if name in self._init:
+            return self._init[name]
+        if name == self.bundle.extra.get("source_episode"):
+            sp = self.bundle.splats
+        else:
+            path = None if self.cache_dir is None else self.cache_dir / f"{name}.init.pt"
+            sp = None
+            if path is not None and path.is_file():
+                d = torch.load(path, weights_only=True)
+                if d.get("n") == len(self.bundle.splats):
+                    g = self.bundle.splats
+                    sp = Splats(d["means"], d["quats"], g.scales, g.opacities, g.sh_dc, g.sh_rest, g.mass, g.attrs)
+            if sp is None:
+                ep = self.episode(name)
+                tgt, _ = ep.object_points([0], erode_px=self.cfg.scene.erode_px)
+                sp, _ = align_splats(self.bundle.splats, tgt, self.bundle.table_normal, self.cfg.scene,
+                                     clusters=self.hierarchy.parents[0].cpu())
+                if path is not None:
+                    _atomic_torch_save({"n": len(sp), "means": sp.means, "quats": sp.quats}, path)
+        self._init[name] = sp
+        return sp
+
+
+# --------------------------------------------------------------------------- loss
+def _scene_ctx(bundle: SceneBundle, dt: float, device, dtype) -> SceneContext:
+    base = bundle.scene_context()
+    return SceneContext(base.gravity, base.plane_normal, base.plane_offset, dt).to(device=device, dtype=dtype)
+
+
+LOSS_TERMS = ("img", "silhouette", "depth", "points", "momentum")
+
+
+def frame_terms(sim_state: SimState, colors: torch.Tensor, opacities: torch.Tensor, ep: EpisodeData, t: int,
+                cfg: TrainConfig, device, points: Optional[torch.Tensor] = None) -> dict[str, torch.Tensor]:
+    """Loss terms (scalars) of one predicted state against frame t in all cameras:
+
+    * ``img``: the paper's lam masked-L2 + (1 - lam) D-SSIM on object pixels (robot pixels are
+      not in the mask), per camera then averaged (``loss.camera_reduce``);
+    * ``silhouette`` (if weighted): sum over non-robot pixels of (alpha - object mask)^2 divided
+      by the object's pixel count, per camera: penalises rendering the object where the camera
+      sees background (the object-masked ``img`` term cannot see that);
+    * ``depth`` (if weighted): mean |rendered - recorded depth| (m) on object pixels;
+    * ``points`` (if weighted): mean distance (m) from each observed object point of the frame
+      (``points`` [M, 3], the frame's fused masked depth) to the nearest predicted splat centre:
+      only what the cameras see is constrained, so occluded parts stay free.
+    """
+    lc = cfg.loss
+    z = sim_state.means.new_zeros(())
+    terms = {"silhouette": z, "depth": z, "points": z}
+    cams = ep.cameras(t, dtype=sim_state.means.dtype, device=device)
+    out = render(sim_state.means, sim_state.covs, colors, opacities, cams)
+    gt = ep.rgb[t].to(device=device, dtype=out.rgb.dtype)
+    mask = ep.loss_mask[t].to(device)
+    if lc.camera_reduce == "camera":  # the paper's sum over images: every camera weighs the same
+        terms["img"] = torch.stack([
+            masked_l2_dssim_loss(out.rgb[c:c + 1], gt[c:c + 1], mask[c:c + 1], lam=lc.lam, window_size=lc.dssim_window,
+                                 dssim_reduce=lc.dssim_reduce) for c in range(len(cams))]).mean()
+    else:
+        terms["img"] = masked_l2_dssim_loss(out.rgb, gt, mask, lam=lc.lam, window_size=lc.dssim_window,
+                                            dssim_reduce=lc.dssim_reduce)
+    if lc.silhouette_weight > 0:
+        keep = (~ep.robot_mask[t].to(device)).to(out.alpha.dtype)
+        m = mask.to(out.alpha.dtype)
+        terms["silhouette"] = ((keep * (out.alpha - m) ** 2).sum(dim=(1, 2)) / m.sum(dim=(1, 2)).clamp_min(1.0)).mean()
+    if lc.depth_weight > 0:
+        gd = ep.depth[t].to(device=device, dtype=out.depth.dtype)
+        m = (mask & (gd > 0)).to(out.depth.dtype)
+        err = m * (out.depth - gd).abs()
+        if lc.camera_reduce == "camera":
+            terms["depth"] = (err.sum(dim=(1, 2)) / m.sum(dim=(1, 2)).clamp_min(1.0)).mean()
+        else:
+            terms["depth"] = err.sum() / m.sum().clamp_min(1.0)
+    if lc.points_weight > 0:
+        if points is None:
+            points = observed_points(ep, t, lc.points_max)
+        if len(points):
+            d = torch.cdist(points.to(device=device, dtype=sim_state.means.dtype), sim_state.means)
+            terms["points"] = d.min(dim=1).values.mean()
+    return terms
+
+
+def observed_points(ep: EpisodeData, t: int, max_points: int) -> torch.Tensor:
+    """Frame t's fused object points [M, 3] (M <= max_points, an evenly strided subset)."""
+    p, _ = ep.object_points([t])
+    if len(p) > max_points:
+        p = p[torch.linspace(0, len(p) - 1, max_points).round().long()]
+    return p
+
+
+def total_loss(terms: dict[str, torch.Tensor], cfg: TrainConfig) -> torch.Tensor:
+    lc = cfg.loss
+    return (terms["img"] + lc.silhouette_weight * terms["silhouette"] + lc.depth_weight * terms["depth"]
+            + lc.points_weight * terms["points"] + lc.momentum_weight * terms["momentum"])
+
+
+class RolloutLoss(nn.Module):
+    """The training objective of one rollout; the module DDP wraps (its forward is the whole
+    rollout, so DDP sees every parameter use)."""
+
+    def __init__(self, sim: Simulator, cfg: TrainConfig, bundle: SceneBundle) -> None:
+        super().__init__()
+        self.sim = sim
+        self.cfg = cfg
+        self.bundle = bundle
+
+    def forward(self, ep: EpisodeData, init: Splats, plan: RolloutPlan) -> tuple[torch.Tensor, dict]:
+        sim, cfg = self.sim, self.cfg
+        dev, dt_ = sim.device, sim.dtype
+        sp = init.to(device=dev, dtype=dt_)
+        colors, opac = sp.colors(), sp.opacities
+        total_mass = float(sp.mass.sum())
+        ctx = _scene_ctx(self.bundle, ep.dt * plan.stride, dev, dt_)
+        if plan.prefix:
+            with torch.no_grad():
+                state = sim.init_state(sp, ctx)
+                for t in plan.prefix:
+                    state = sim.step(state, ep.action(t, dt_, dev))
+            state = sim.refresh_reference(state.detach())
+        else:
+            state = sim.init_state(sp, ctx)
+        sums = {k: state.means.new_zeros(()) for k in LOSS_TERMS}
+        sup = set(plan.loss_frames)
+        for t in plan.frames:
+            state = sim.step(state, ep.action(t, dt_, dev))
+            if t not in sup:
+                continue
+            for k, v in frame_terms(state, colors, opac, ep, t, cfg, dev).items():
+                sums[k] = sums[k] + v
+            if cfg.loss.momentum_weight > 0:
+                sums["momentum"] = sums["momentum"] + sim.momentum_loss(state) / (total_mass * total_mass)
+        n = max(1, len(sup))
+        terms = {k: v / n for k, v in sums.items()}
+        loss = total_loss(terms, cfg)
+        if not loss.requires_grad:  # e.g. the gripper never reaches the object: no gradient, keep ranks in step
+            loss = loss + sum(p.sum() for p in sim.parameters() if p.requires_grad) * 0.0
+        return loss, {k: float(v.detach()) for k, v in terms.items()}
+
+
+# --------------------------------------------------------------------------- validation
+@torch.no_grad()
+def rollout_full(sim: Simulator, ep: EpisodeData, init: Splats, bundle: SceneBundle,
+                 frames: Optional[Sequence[int]] = None) -> list[SimState]:
+    """Open-loop rollout at the frame rate from frame 0; states of frames 1..T-1 (or up to max(frames))."""
+    dev, dt_ = sim.device, sim.dtype
+    sp = init.to(device=dev, dtype=dt_)
+    state = sim.init_state(sp, _scene_ctx(bundle, ep.dt, dev, dt_))
+    last = ep.num_frames - 1 if not frames else max(frames)
+    out = [state]
+    for t in range(1, last + 1):
+        state = sim.step(state, ep.action(t, dt_, dev))
+        out.append(state)
+    return out
+
+
+@torch.no_grad()
+def gripper_follow(states: Sequence[SimState], ep: EpisodeData, up: torch.Tensor, radius: float = 0.03,
+                   close_below: float = 0.5) -> Optional[dict]:
+    """How far the splats near the gripper rise with it during a grasp, from the predicted states
+    (state t = frame t). Splats within ``radius`` of the control points' centroid at the frame
+    where the gripper first closes (c < ``close_below``) are followed to the last frame; returns
+    {"grasp_frame", "gripper_rise", "splat_rise", "ratio" = splat_rise / gripper_rise,
+    "n_splats"} (None if the gripper never closes or does not rise)."""
+    closed = torch.nonzero(ep.gripper < close_below).flatten()
+    if closed.numel() == 0:
+        return None
+    tc = int(closed[0])
+    last = len(states) - 1
+    if last <= tc:
+        return None
+    up = up.double() / up.double().norm()
+    grip_c = ep.control_points[tc].double().mean(0)
+    grip_e = ep.control_points[last].double().mean(0)
+    rise_g = float((grip_e - grip_c) @ up)
+    x_c = states[tc].means.detach().double().cpu()
+    near = (x_c - grip_c).norm(dim=-1) < radius
+    if rise_g <= 1e-3 or int(near.sum()) == 0:
+        return None
+    x_e = states[last].means.detach().double().cpu()
+    rise_s = float(((x_e[near] - x_c[near]) @ up).mean())
+    return {"grasp_frame": tc, "gripper_rise": rise_g, "splat_rise": rise_s, "ratio": rise_s / rise_g,
+            "n_splats": int(near.sum())}
+
+
+@torch.no_grad()
+def validate(sim: Simulator, store: EpisodeStore, names: Sequence[str], cfg: TrainConfig,
+             dist: Optional[DistInfo] = None) -> dict:
+    """Validation: full-rate open-loop rollout of each episode from its initial state (the way
+    the live node runs the model), scored on every ``val_frame_stride``-th frame.
+
+    ``val_loss``: the training objective's data terms (:func:`total_loss` without the
+    momentum regulariser) with the config's weights, mean over frames and episodes;
+    ``img``: the paper's image loss L_img alone; ``points``: mean distance (m) from the
+    observed object points to the nearest predicted splat (whatever its weight);
+    ``follow``: mean :func:`gripper_follow` ratio. Episodes are split over the ranks and
+    reduced."""
+    dist = dist or DistInfo()
+    was = sim.training
+    sim.eval()
+    tot = img = pts = cnt = follow_sum = follow_n = 0.0
+    for i, name in enumerate(names):
+        if i % dist.world != dist.rank:
+            continue
+        ep = store.episode(name)
+        states = rollout_full(sim, ep, store.initial_splats(name), store.bundle)
+        init = store.initial_splats(name).to(device=sim.device, dtype=sim.dtype)
+        frames = list(range(cfg.run.val_frame_stride, ep.num_frames, cfg.run.val_frame_stride))
+        for t in frames:
+            obs = observed_points(ep, t, cfg.loss.points_max)
+            terms = frame_terms(states[t], init.colors(), init.opacities, ep, t, cfg, sim.device, points=obs)
+            terms["momentum"] = terms["img"].new_zeros(())
+            tot += float(total_loss(terms, cfg))
+            img += float(terms["img"])
+            pts += _point_distance(states[t].means, obs)
+            cnt += 1
+        f = gripper_follow(states, ep, torch.as_tensor(store.bundle.table_normal))
+        if f is not None:
+            follow_sum += f["ratio"]
+            follow_n += 1
+    tot, img, pts, cnt, follow_sum, follow_n = dist.all_reduce_sum([tot, img, pts, cnt, follow_sum, follow_n])
+    sim.train(was)
+    n = max(cnt, 1)
+    return {"val_loss": tot / n, "img": img / n, "points": pts / n,
+            "follow": (follow_sum / follow_n) if follow_n else float("nan"), "frames": int(cnt)}
+
+
+def _point_distance(means: torch.Tensor, points: torch.Tensor) -> float:
+    if len(points) == 0:
+        return 0.0
+    return float(torch.cdist(points.to(means), means).min(dim=1).values.mean())
+
+
+# --------------------------------------------------------------------------- files
+def _atomic_torch_save(obj, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def save_scene(folder: Path, bundle: SceneBundle, hierarchy: Hierarchy, info: Optional[dict] = None) -> Path:
+    """Scene bundle + ``hierarchy.pt`` (+ ``setup.json``) in ``folder``."""
+    folder = Path(folder)
+    bundle.save(folder)
+    _atomic_torch_save(hierarchy.to_dict(), folder / "hierarchy.pt")
+    if info is not None:
+        _atomic_write_text(folder / "setup.json", json.dumps(info, indent=1, default=float))
+    return folder
+
+
+def load_scene(folder: Path) -> tuple[SceneBundle, Hierarchy]:
+    """(bundle, hierarchy) from a folder written by :func:`save_scene` (the hierarchy is rebuilt
+    from the splats when ``hierarchy.pt`` is absent, e.g. a hand-made bundle)."""
+    folder = Path(folder)
+    bundle = SceneBundle.load(folder)
+    hp = folder / "hierarchy.pt"
+    if hp.is_file():
+        hier = Hierarchy.from_dict(torch.load(hp, weights_only=True))
+        if hier.sizes[0] != len(bundle.splats):
+            raise ValueError(f"{hp}: hierarchy is for {hier.sizes[0]} splats, the bundle has {len(bundle.splats)}")
+    else:
+        from soma_ros.core.hierarchy import build_hierarchy
+
+        oc = load_object_config(bundle.object_name)
+        hier = build_hierarchy(bundle.splats.means.float(), bundle.splats.mass.float(), oc.hierarchy.thresholds,
+                               oc.hierarchy.seed_fraction)
+    return bundle, hier
+
+
+class RunLog:
+    """``log.csv`` (append; rows past a resumed iteration are dropped) and ``loss.png``."""
+
+    def __init__(self, path: Path, resume_iteration: Optional[int]) -> None:
+        self.path = path
+        rows = []
+        if resume_iteration is not None and path.is_file():
+            with open(path, newline="") as f:
+                for r in csv.DictReader(f):
+                    try:
+                        if int(r["iteration"]) <= resume_iteration:
+                            rows.append(r)
+                    except (KeyError, ValueError):
+                        continue
+        self.rows = rows
+        with open(path, "w", newline="") as f:
+            w = csv.DictWriter(f, LOG_COLUMNS)
+            w.writeheader()
+            for r in rows:
+                w.writerow({k: r.get(k, "") for k in LOG_COLUMNS})
+
+    def add(self, **row) -> None:
+        r = {k: row.get(k, "") for k in LOG_COLUMNS}
+        for k, v in r.items():
+            if isinstance(v, float):
+                r[k] = f"{v:.6g}"
+        self.rows.append(r)
+        with open(self.path, "a", newline="") as f:
+            csv.DictWriter(f, LOG_COLUMNS).writerow(r)
+
+    def plot(self, out: Path, title: str = "") -> None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        tr = [(int(r["iteration"]), float(r["loss"])) for r in self.rows if r["kind"] == "train" and r["loss"]]
+        va = [(int(r["iteration"]), float(r["loss"])) for r in self.rows if r["kind"] == "val" and r["loss"]]
+        fig, ax = plt.subplots(figsize=(7, 4), dpi=100)
+        if tr:
+            x, y = np.array(tr).T
+            ax.plot(x, y, lw=0.6, alpha=0.35, color="C0", label="train (per iteration)")
+            k = max(1, len(y) // 30)
+            if k > 1:
+                ys = np.convolve(y, np.ones(k) / k, mode="valid")
+                ax.plot(x[k - 1:], ys, color="C0", lw=1.5, label=f"train ({k}-iteration mean)")
+        if va:
+            x, y = np.array(va).T
+            ax.plot(x, y, "o-", color="C3", label="validation (full-rate rollout)")
+        stages = [(int(r["iteration"]), r["stage"]) for r in self.rows if r["kind"] == "train" and r["stage"]]
+        for (i0, s0), (i1, s1) in zip(stages, stages[1:]):
+            if s1 != s0:
+                ax.axvline(i0, color="0.5", ls="--", lw=0.8)
+                ax.text(i0, 1.0, f" stage {s1}", transform=ax.get_xaxis_transform(), va="top", fontsize=7,
+                        color="0.4")
+        ax.set_xlabel("iteration (stage 1: the rollout grows every epoch, so its loss rises)")
+        ax.set_ylabel("loss")
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        ax.set_title(title, fontsize=9)
+        fig.tight_layout()
+        tmp = out.with_name(f".{out.stem}.tmp.png")
+        fig.savefig(tmp)
+        plt.close(fig)
+        os.replace(tmp, out)
+
+
+# --------------------------------------------------------------------------- the run
+def _config_fingerprint(cfg: TrainConfig) -> dict:
+    """The parts of the config a resumed run must share with the original."""
+    return {"model": cfg.model_config().to_dict(), "object": cfg.object, "robot": cfg.robot,
+            "data": dataclasses.asdict(cfg.data), "scene": dataclasses.asdict(cfg.scene)}
+
+
+def _weights_checksum(sim: Simulator) -> float:
+    return float(sum(p.detach().double().abs().sum().cpu() for p in sim.parameters()))
+
+
+def train(cfg: TrainConfig, data_dir: Path, out_dir: Path, scene_dir: Optional[Path] = None,
+          max_iterations: Optional[int] = None, log=print) -> dict:
+    """Run (or resume) a training run; returns a summary dict (rank 0's view).
+
+    ``max_iterations``: stop after this global iteration (a partial run that can be resumed;
+    for tests and time-boxed jobs). ``log``: where one-line messages go (rank 0 only).
+    """
+    torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1") or 1))
+    dist = DistInfo.from_env(cfg.device)
+    say = log if dist.is_main else (lambda *a, **k: None)
+    data_dir, out_dir = Path(data_dir), Path(out_dir)
+    try:
+        return _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist, say)
+    finally:
+        if dist.distributed and torch.distributed.is_initialized():
+            torch.distributed.destroy_process_group()
+
+
+def _set_up_scene(cfg, scene_dir, scene_out, train_refs, val_refs, robot, obj, model_cfg, data_dir, say) -> None:
+    """RUN/scene from ``scene_dir`` (a bundle) or from the first frame of the source episode."""
+    if scene_dir is not None:
+        bundle, hier = load_scene(scene_dir)
+        save_scene(scene_out, bundle, hier)
+        say(f"scene: copied from {scene_dir} ({len(bundle.splats)} splats)")
+    else:
+        src_name = cfg.scene.source_episode or train_refs[0].name
+        src = {r.name: r for r in train_refs + val_refs}.get(src_name)
+        if src is None:
+            raise ValueError(f"scene.source_episode '{src_name}' is not an episode of {data_dir}")
+        t0 = time.time()
+        ep0 = prepare_episode(src.bag, robot, cfg.data, name=src.name)
+        setup = setup_scene(ep0, cfg.scene, obj.name, cfg.robot, obj.total_mass, model_cfg.hierarchy.thresholds,
+                            model_cfg.hierarchy.seed_fraction, progress=False)
+        save_scene(scene_out, setup.bundle, setup.hierarchy, setup.info)
+        say(f"scene: {len(setup.bundle.splats)} splats from {src.name} ({setup.info['fused_points']} fused points), "
+            f"hierarchy {setup.hierarchy.sizes}, table normal {np.round(setup.bundle.table_normal, 3).tolist()}, "
+            f"{time.time() - t0:.1f} s")
+
+
+def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, say) -> dict:
+    t_start = time.time()
+    if dist.is_main:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    dist.barrier()
+    dc = cfg.data
+    train_refs = load_dataset(data_dir, dc.train_split, dc.tasks)
+    if dc.val_split is not None:
+        val_refs = load_dataset(data_dir, dc.val_split, dc.tasks)
+    else:
+        k = min(dc.val_holdout, max(0, len(train_refs) - 1))
+        val_refs, train_refs = train_refs[len(train_refs) - k:], train_refs[: len(train_refs) - k]
+    if dc.max_train_episodes:
+        train_refs = train_refs[: dc.max_train_episodes]
+    if dc.max_val_episodes:
+        val_refs = val_refs[: dc.max_val_episodes]
+    if not train_refs:
+        raise ValueError(f"{data_dir}: no training episodes (split '{dc.train_split}', tasks {dc.tasks})")
+    robot = RobotModel.from_config(cfg.robot, dtype=torch.float64)
+    obj = load_object_config(cfg.object)
+    model_cfg = cfg.model_config()
+
+    # ---- resume?
+    state_path = out_dir / TRAIN_STATE
+    resume = None
+    if state_path.is_file():
+        resume = torch.load(state_path, map_location="cpu", weights_only=True)
+        if resume.get("format") != TRAIN_STATE_FORMAT:
+            raise ValueError(f"{state_path}: not a soma_ros training state")
+        if resume["fingerprint"] != json.loads(json.dumps(_config_fingerprint(cfg))):
+            raise ValueError(f"{out_dir} holds a run with a different model/data/scene config; "
+                             "use another --out or the same config to resume")
+
+    # ---- scene (rank 0 sets it up, the others load it)
+    scene_out = out_dir / "scene"
+    failure: Optional[BaseException] = None
+    try:
+        if dist.is_main and not (scene_out / "scene.json").is_file():
+            _set_up_scene(cfg, scene_dir, scene_out, train_refs, val_refs, robot, obj, model_cfg, data_dir, say)
+    except Exception as exc:  # tell the other ranks instead of leaving them at the barrier
+        failure = exc
+    if dist.all_reduce_sum([1.0 if failure is not None else 0.0])[0] > 0:
+        if failure is not None:
+            raise failure
+        raise RuntimeError("rank 0 failed to set up the scene (see its error)")
+    bundle, hier = load_scene(scene_out)
+    if dist.is_main:
+        _atomic_write_text(out_dir / "train_config.yaml", cfg.to_yaml())
+
+    # ---- model, optimiser
+    torch.manual_seed(cfg.seed)
+    sim = Simulator(model_cfg)
+    sim.bind_hierarchy(hier)
+    sim.to(dist.device)
+    sim.train()
+    if resume is not None:
+        sim.load_state_dict(resume["model"])
+    module = RolloutLoss(sim, cfg, bundle)
+    if dist.distributed:
+        ddp = nn.parallel.DistributedDataParallel(
+            module, device_ids=[dist.device.index] if dist.device.type == "cuda" else None,
+            find_unused_parameters=True)
+    else:
+        ddp = module
+    opt = torch.optim.Adam(sim.parameters(), lr=cfg.optim.lr, betas=tuple(cfg.optim.betas),
+                           weight_decay=cfg.optim.weight_decay)
+    start_it = 0
+    resumed_from = []
+    if resume is not None:
+        opt.load_state_dict(resume["optimizer"])
+        start_it = int(resume["iteration"])
+        resumed_from = list(resume.get("resumed_from", [])) + [start_it]
+        say(f"resuming from iteration {start_it} (weights checksum {_weights_checksum(sim):.6f})")
+
+    store = EpisodeStore(train_refs + val_refs, robot, cfg, bundle, hier, out_dir / "cache")
+    reach = rest_reach(sim)
+    train_names = [r.name for r in train_refs]
+    val_names = [r.name for r in val_refs][: cfg.run.val_episodes]
+    ipe = cfg.schedule.iters_per_epoch
+    total = cfg.schedule.total_iters
+    stop = total if max_iterations is None else min(total, int(max_iterations))
+    runlog = RunLog(out_dir / "log.csv", start_it if resume is not None else None) if dist.is_main else None
+    best_val = float(resume["best_val"]) if resume is not None and resume.get("best_val") is not None else None
+    first_val = resume.get("first_val") if resume is not None else None
+    last_val = resume.get("last_val") if resume is not None else None
+    val_history: list = list(resume.get("val_history", [])) if resume is not None else []
+
+    def checkpoint(it: int, epoch: int, final: bool = False) -> None:
+        if not dist.is_main:
+            return
+        payload = {"format": TRAIN_STATE_FORMAT, "iteration": it, "epoch": epoch,
+                   "model": {k: v.detach().cpu() for k, v in sim.state_dict().items()},
+                   "optimizer": _to_cpu(opt.state_dict()), "fingerprint": json.loads(json.dumps(_config_fingerprint(cfg))),
+                   "best_val": best_val, "first_val": first_val, "last_val": last_val, "resumed_from": resumed_from,
+                   "val_history": val_history,
+                   "weights_checksum": _weights_checksum(sim)}
+        _atomic_torch_save(payload, state_path)
+        info = stage_at(cfg, min(epoch, cfg.schedule.epochs - 1))
+        extra = {"iteration": it, "epoch": epoch, "stage": info.stage, "total_iterations": total,
+                 "complete": bool(final and it >= total), "train_config": cfg.name, "dataset": str(data_dir),
+                 "object": cfg.object, "robot": cfg.robot, "scene": "scene", "dt": float(bundle.dt),
+                 "val_loss": last_val, "val_loss_untrained": first_val, "resumed_from": resumed_from,
+                 "val_history": val_history,
+                 "world_size": dist.world, "weights_checksum": _weights_checksum(sim)}
+        save_checkpoint(out_dir / "checkpoint.pt", sim, extra=extra)
+
+    def run_validation(it: int, epoch: int) -> None:
+        nonlocal best_val, first_val, last_val
+        if not val_names:
+            return
+        t0 = time.time()
+        v = validate(sim, store, val_names, cfg, dist)
+        last_val = v["val_loss"]
+        val_history.append({"iteration": it, **{k: float(v[k]) for k in ("val_loss", "img", "points", "follow")}})
+        if first_val is None:
+            first_val = v["val_loss"]
+        best_val = v["val_loss"] if best_val is None else min(best_val, v["val_loss"])
+        if runlog is not None:
+            runlog.add(kind="val", iteration=it, epoch=epoch, loss=v["val_loss"], img=v["img"],
+                       points=v["points"], seconds=time.time() - t0, follow=v["follow"])
+            runlog.plot(out_dir / "loss.png", f"{cfg.name}: {len(train_names)} train / {len(val_names)} val episodes")
+
+    if start_it == 0 and first_val is None:
+        run_validation(0, 0)
+        say(f"validation loss of the untrained model: {first_val:.5f}")
+        checkpoint(0, 0)
+
+    bar = None
+    if dist.is_main and cfg.run.progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=stop, initial=start_it, desc="soma train", unit="it", dynamic_ncols=True)
+    it = start_it
+    used_episodes: list[str] = []
+    while it < stop:
+        epoch = it // ipe
+        info = stage_at(cfg, epoch)
+        rng = np.random.default_rng([cfg.seed, it, dist.rank])
+        perm = np.random.default_rng([cfg.seed, epoch, 7]).permutation(len(train_names))
+        name = train_names[int(perm[((it % ipe) * dist.world + dist.rank) % len(train_names)])]
+        used_episodes.append(name)
+        ep = store.episode(name)
+        init = store.initial_splats(name)
+        plan = plan_rollout(info, name, ep.num_frames, rng, store.contact(name, reach), cfg.schedule.stage1.sim_step)
+        lr = lr_at(cfg, it)
+        for g in opt.param_groups:
+            g["lr"] = lr
+        t0 = time.time()
+        loss, parts = ddp(ep, init, plan)
+        if not torch.isfinite(loss):
+            raise RuntimeError(f"iteration {it}: the loss is not finite ({float(loss)}) on episode {name}")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        gn = float(torch.nn.utils.clip_grad_norm_(sim.parameters(), cfg.optim.grad_clip))
+        opt.step()
+        it += 1
+        dtime = time.time() - t0
+        if runlog is not None:
+            runlog.add(kind="train", iteration=it, epoch=epoch, stage=info.stage, stride=plan.stride,
+                       steps=len(plan.frames), episode=name, loss=float(loss.detach()), grad_norm=gn, lr=lr,
+                       seconds=dtime, **parts)
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(loss=f"{float(loss.detach()):.4f}", stage=info.stage, steps=len(plan.frames),
+                            val=f"{last_val:.4f}" if last_val is not None else "-")
+        end_of_epoch = it % ipe == 0
+        if end_of_epoch and ((it // ipe) % cfg.run.val_every_epochs == 0 or it >= total):
+            run_validation(it, it // ipe)
+        if end_of_epoch or it % cfg.run.checkpoint_every == 0 or it >= stop:
+            checkpoint(it, it // ipe, final=it >= total)
+    if bar is not None:
+        bar.close()
+    if runlog is not None:
+        runlog.plot(out_dir / "loss.png", f"{cfg.name}: {len(train_names)} train / {len(val_names)} val episodes")
+    summary = {"out": str(out_dir), "iterations": it, "total_iterations": total, "complete": it >= total,
+               "world_size": dist.world, "val_loss_untrained": first_val, "val_loss": last_val,
+               "val_history": val_history,
+               "best_val_loss": best_val, "resumed_from": resumed_from, "seconds": round(time.time() - t_start, 1),
+               "train_episodes": train_names, "val_episodes": val_names}
+    if dist.distributed:  # what each replica ends with: identical weights, its own episodes
+        (out_dir / "dist").mkdir(exist_ok=True)
+        _atomic_write_text(out_dir / "dist" / f"rank_{dist.rank}.json", json.dumps(
+            {"rank": dist.rank, "world_size": dist.world, "weights_checksum": _weights_checksum(sim),
+             "episodes": used_episodes}, indent=1))
+        dist.barrier()
+    if dist.is_main:
+        _atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=1))
+    return summary
+
+
+def _to_cpu(obj):
+    if isinstance(obj, torch.Tensor):
+        return obj.detach().cpu()
+    if isinstance(obj, dict):
+        return {k: _to_cpu(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_to_cpu(v) for v in obj]
+    return obj
