@@ -31,6 +31,9 @@ from .core.simulator import RobotAction, SimState, Simulator
 from .core.splats import Splats
 
 
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
 class JointStateRejected(ValueError):
     """A joint state that was not used, with the reason."""
 
@@ -40,7 +43,8 @@ class JointStateFilter:
 
     ``push`` raises :class:`JointStateRejected` for: names and positions of
     different lengths, duplicate names, missing required joints, non-finite
-    values of required joints, stamps older than the newest accepted one.
+    values of required joints (or beyond float32's range), stamps older than
+    the newest accepted one.
     Unknown extra joints are ignored and order does not matter.
 
     With ``max_future_s`` set, ``push(..., now_ns=clock)`` also rejects stamps more
@@ -86,8 +90,11 @@ class JointStateFilter:
         if missing:
             raise JointStateRejected(f"missing joints: {', '.join(missing)}")
         vec = np.array([positions[index[r]] for r in self.required], dtype=np.float64)
-        if not np.all(np.isfinite(vec)):
-            bad = [r for r, v in zip(self.required, vec) if not np.isfinite(v)]
+        # beyond float32's range is infinite for the robot model (float32 FK): such a value
+        # would fail every step that samples it
+        ok = np.isfinite(vec) & (np.abs(vec) <= _F32_MAX)
+        if not np.all(ok):
+            bad = [r for r, v in zip(self.required, ok) if not v]
             raise JointStateRejected(f"non-finite values for: {', '.join(bad)}")
         with self._lock:
             if self._hist and stamp_ns < self._hist[-1][0]:
@@ -162,9 +169,16 @@ class LiveSimulator:
         splats.validate()
         sim = self.sim
         with self._sim_lock, torch.no_grad():
-            if sim.hierarchy is None or sim.hierarchy.sizes[0] != len(splats):
-                sim.bind(splats)
-            state = sim.init_state(splats, self.scene)
+            bound = (sim.hierarchy, sim.graphs, sim.splat_attrs)
+            try:
+                if sim.hierarchy is None or sim.hierarchy.sizes[0] != len(splats):
+                    sim.bind(splats)
+                state = sim.init_state(splats, self.scene)
+            except BaseException:
+                # a failure after a rebind must not leave the simulator bound to the new
+                # count while the running state is the old scene's
+                sim.hierarchy, sim.graphs, sim.splat_attrs = bound
+                raise
             with self._lock:
                 self.template = splats
                 self.state = state

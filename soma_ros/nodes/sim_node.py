@@ -127,7 +127,9 @@ class SomaSimNode(Node):
         self.splat_rate_hz = _float_param(self, "splat_rate_hz", 5.0, "splat cloud publish rate, Hz (0 = none)", 0.0, 120.0)
         self.render_scale = _float_param(self, "render_scale", 1.0, "image scale relative to the bundle's cameras", 0.05, 4.0)
         self.max_joint_age = _float_param(self, "max_joint_state_age_s", 1.0,
-                                          "hold the robot still when the newest joint state is older than this, s", 0.01, 3600.0)
+                                          "hold the robot still when the newest joint state is older than this, s; "
+                                          "joint states stamped further than this ahead of the node clock are rejected",
+                                          0.01, 3600.0)
 
         import torch
 
@@ -147,7 +149,8 @@ class SomaSimNode(Node):
             from ..core.robot import RobotModel
 
             self.live.robot = RobotModel.from_config(gp("robot_config"))
-        self.joints = JointStateFilter(self.live.required_joints)
+        # A stamp far ahead of the clock, once accepted, would make every later message "go backwards".
+        self.joints = JointStateFilter(self.live.required_joints, max_future_s=self.max_joint_age)
         self.get_logger().info(
             f"loaded {ckpt} and scene {scene}: {len(self.live.template)} splats, cameras "
             f"{', '.join(c.name for c in self.live.cameras)}, joints {', '.join(self.live.required_joints)}")
@@ -177,6 +180,7 @@ class SomaSimNode(Node):
         self._step_rate = RateMeter()
         self._image_rate = RateMeter()
         self._last_vec: Optional[np.ndarray] = None
+        self._step_lock = threading.Lock()
         self._last_step_ns = 0
         self.timer = self.create_timer(1.0 / self.rate_hz, self._on_step, callback_group=self._step_group)
         if self.render_rate_hz > 0:
@@ -188,11 +192,12 @@ class SomaSimNode(Node):
     def _on_joint_state(self, msg: JointState) -> None:
         from ..live import JointStateRejected
 
+        now = self.get_clock().now().nanoseconds
         stamp = ns_from_stamp(msg.header.stamp)
         if stamp == 0:
-            stamp = self.get_clock().now().nanoseconds
+            stamp = now
         try:
-            self.joints.push(list(msg.name), list(msg.position), stamp)
+            self.joints.push(list(msg.name), list(msg.position), stamp, now_ns=now)
         except JointStateRejected as exc:
             self.get_logger().warn(f"rejected /joint_states: {exc} ({self.joints.rejected} rejected so far)",
                                    throttle_duration_sec=2.0)
@@ -205,11 +210,17 @@ class SomaSimNode(Node):
                 new = load_scene_file(req.ply_path)
             else:
                 raise ValueError("request has neither splats nor ply_path")
+            init = None
             if len(req.initial_joint_state.name):
-                self.joints.clear()
-                self.joints.push(list(req.initial_joint_state.name), list(req.initial_joint_state.position),
-                                 self.get_clock().now().nanoseconds)
-            n = self.live.reset(new)
+                from ..live import JointStateFilter
+
+                init = (list(req.initial_joint_state.name), list(req.initial_joint_state.position))
+                JointStateFilter(self.live.required_joints).push(*init, 0)  # validate before anything changes
+            with self._step_lock:  # not between a step's joint sample and its step
+                n = self.live.reset(new)
+                if init is not None:
+                    self.joints.clear()
+                    self.joints.push(*init, self.get_clock().now().nanoseconds)
         except Exception as exc:  # noqa: BLE001 - any failure must leave the old scene running
             resp.num_splats = len(self.live.template)
             resp.success = False
@@ -223,6 +234,12 @@ class SomaSimNode(Node):
 
     # ------------------------------------------------------------------- step
     def _on_step(self) -> None:
+        # A reset waits for a running step: a step must not sample the joints before a reset
+        # (say, the last trial's pose) and then apply them to the scene the reset brought.
+        with self._step_lock:
+            self._step()
+
+    def _step(self) -> None:
         now = self.get_clock().now().nanoseconds
         newest = self.joints.newest_stamp_ns()
         vec = None
@@ -236,7 +253,10 @@ class SomaSimNode(Node):
             _, ms = self.live.step(vec)
         except Exception as exc:  # noqa: BLE001 - never die on a bad step; report and reset
             self.get_logger().error(f"step failed ({exc}); resetting to the initial scene", throttle_duration_sec=2.0)
-            self.live.reset(self.live.template)
+            try:
+                self.live.reset(self.live.template)
+            except Exception as exc2:  # noqa: BLE001
+                self.get_logger().error(f"reset after a failed step failed too ({exc2})", throttle_duration_sec=2.0)
             return
         self._last_vec = vec
         self._step_ms = ms
@@ -262,6 +282,12 @@ class SomaSimNode(Node):
 
     # ---------------------------------------------------------------- outputs
     def _on_render(self) -> None:
+        try:
+            self._render_and_publish()
+        except Exception as exc:  # noqa: BLE001 - a failed render must not stop the executor (and the node)
+            self.get_logger().error(f"render failed: {exc}", throttle_duration_sec=5.0)
+
+    def _render_and_publish(self) -> None:
         state, template, _ = self.live.snapshot()
         vec = self._last_vec
         if vec is None and any(c.mount_link for c in self.live.cameras):
@@ -286,9 +312,12 @@ class SomaSimNode(Node):
         self._image_rate.tick()
 
     def _on_splats(self) -> None:
-        splats = self.live.current_splats()
-        stamp = stamp_from_ns(self._last_step_ns or self.get_clock().now().nanoseconds)
-        self.pub_splats.publish(splats_to_cloud(splats, self.sim_frame, stamp))
+        try:
+            splats = self.live.current_splats()
+            stamp = stamp_from_ns(self._last_step_ns or self.get_clock().now().nanoseconds)
+            self.pub_splats.publish(splats_to_cloud(splats, self.sim_frame, stamp))
+        except Exception as exc:  # noqa: BLE001 - as for renders
+            self.get_logger().error(f"splat publish failed: {exc}", throttle_duration_sec=5.0)
 
     def _publish_static_tf(self) -> None:
         stamp = self.get_clock().now().to_msg()
