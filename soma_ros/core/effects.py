@@ -447,3 +447,6 @@ class QuadraticDrag(Effect):
         v = ctx.velocities
         speed = torch.sqrt((v * v).sum(-1, keepdim=True) + 1e-18)
         return -(self.coeff * ctx.masses)[:, None] * speed * v
+
+
+from . import effects_library  # noqa: E402,F401

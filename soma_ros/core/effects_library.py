@@ -1,0 +1,134 @@
+"""Candidate effect terms with physical meaning, for the discrepancy workflow (issue #8).
+
+Every term here is *zero at initialisation* (its learnable parameter starts at
+0), so adding one to a trained model changes nothing until it is fitted; each
+has one or two learnable scalars with a unit, and is registered in the core
+registry (:func:`soma_ros.core.effects.register_effect`) so a checkpoint that
+carries it loads anywhere (``effects.py`` imports this module).
+
+==================  ===========================================================
+table_friction      Coulomb-like sliding friction of the table on splats within
+                    ``tau`` of the plane:  F = -mu m |g_n| w(d) v_t / sqrt(|v_t|^2
+                    + v_eps^2), v_t the velocity tangential to the plane, w the
+                    contact weight (1 at d <= 0, smoothly 0 at d = tau), smooth
+                    near v = 0 (v_eps). mu* is *signed* and unconstrained: it is
+                    the friction coefficient the data asks for *in addition* to
+                    what the model learned, so mu < 0 reads "the table is more
+                    slippery than the model believes". [mu*, tau, v_eps]
+gripper_slip        the grasp: splats within ``radius`` of a robot control point
+                    while the gripper is closed (weight (1 - c_t), smooth radial
+                    cutoff) get  F = m w (-coupling (v - v_cp) + sag g).
+                    coupling* (1/s, signed): > 0 the held material follows the
+                    gripper more tightly, < 0 it lags (slips) behind it; sag*
+                    (fraction of g): the held material slides down out of the
+                    grasp under its load. [coupling*, sag*, radius]
+mass_scale          extra weight of the lifted material: F = excess m g s(d),
+                    s(d) = smoothstep((d - d0) / (d1 - d0)) = 0 on the table
+                    (d <= d0, where the support carries any weight, so the rest
+                    state is untouched) and 1 above d1. excess* = m_true / m_model
+                    - 1 (signed: < 0 lighter). With a learned model whose
+                    internal forces are fixed, a heavier object differs mainly in
+                    how its unsupported parts sag; this is that handle. [excess*,
+                    d0, d1]
+==================  ===========================================================
+
+Not here: a stiffness term. The object's elasticity lives inside the learned
+network (there is no rest shape or strain in :class:`EffectContext`), so a
+clean, few-parameter force handle for "stiffer material" does not exist at
+this interface; the workflow lists it as not covered.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .config import ConfigError
+from .effects import Effect, EffectContext, _param, register_effect
+
+__all__ = ["TableFriction", "GripperSlip", "MassScale", "smoothstep"]
+
+
+def smoothstep(t: torch.Tensor) -> torch.Tensor:
+    """C1 step: 0 for t <= 0, 1 for t >= 1, 3t^2 - 2t^3 in between."""
+    t = t.clamp(0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+@register_effect("table_friction")
+class TableFriction(Effect):
+    """Signed, smooth Coulomb friction of the table (module docstring)."""
+
+    @dataclass
+    class Params:
+        mu: float = 0.0
+        tau: float = 0.015  # m: contact band above the plane
+        v_eps: float = 0.02  # m/s: below this the friction fades linearly to 0 (no chatter at v = 0)
+
+    def __init__(self, params, *, attr_dim: int = 0) -> None:
+        super().__init__(params, attr_dim=attr_dim)
+        if not (params.tau > 0 and params.v_eps > 0):
+            raise ConfigError(f"effect table_friction: tau and v_eps must be > 0, got {params}")
+        self.mu = _param(float(params.mu))
+
+    def forward(self, ctx: EffectContext) -> torch.Tensor:
+        n = ctx.plane_normal.to(ctx.positions.dtype)
+        w = 1.0 - smoothstep(ctx.signed_distance() / self.params.tau)
+        v = ctx.velocities
+        vt = v - (v @ n)[:, None] * n[None, :]
+        speed = torch.sqrt((vt * vt).sum(-1, keepdim=True) + self.params.v_eps ** 2)
+        g_n = torch.clamp(-(ctx.gravity @ n), min=0.0)
+        return -(self.mu * g_n) * (ctx.masses * w)[:, None] * vt / speed
+
+
+@register_effect("gripper_slip")
+class GripperSlip(Effect):
+    """Relative-velocity coupling and sag of the grasped material (module docstring)."""
+
+    @dataclass
+    class Params:
+        coupling: float = 0.0  # 1/s
+        sag: float = 0.0  # fraction of g
+        radius: float = 0.03  # m
+
+    def __init__(self, params, *, attr_dim: int = 0) -> None:
+        super().__init__(params, attr_dim=attr_dim)
+        if not params.radius > 0:
+            raise ConfigError(f"effect gripper_slip: radius must be > 0, got {params.radius}")
+        self.coupling = _param(float(params.coupling))
+        self.sag = _param(float(params.sag))
+
+    def forward(self, ctx: EffectContext) -> torch.Tensor:
+        out = ctx.positions.new_zeros((ctx.num_nodes, 3))
+        if ctx.control_points is None or ctx.control_points.shape[0] == 0:
+            return out
+        closed = (1.0 - ctx.gripper.reshape(())).clamp(0.0, 1.0)
+        d2 = torch.cdist(ctx.positions.detach(), ctx.control_points.detach()) ** 2  # [N, P]
+        j = d2.argmin(dim=1)
+        r2 = d2.gather(1, j[:, None]).squeeze(1)
+        w = closed * (1.0 - r2 / self.params.radius ** 2).clamp_min(0.0) ** 2
+        rel = ctx.velocities - ctx.control_velocities[j]
+        acc = -self.coupling * rel + self.sag * ctx.gravity[None, :]
+        return (ctx.masses * w)[:, None] * acc
+
+
+@register_effect("mass_scale")
+class MassScale(Effect):
+    """Extra (signed) weight of the material lifted off the table (module docstring)."""
+
+    @dataclass
+    class Params:
+        excess: float = 0.0
+        d0: float = 0.02  # m above the plane: below, the table carries it (no force)
+        d1: float = 0.05  # m: fully free from here up
+
+    def __init__(self, params, *, attr_dim: int = 0) -> None:
+        super().__init__(params, attr_dim=attr_dim)
+        if not params.d1 > params.d0 >= 0:
+            raise ConfigError(f"effect mass_scale: need d1 > d0 >= 0, got {params}")
+        self.excess = _param(float(params.excess))
+
+    def forward(self, ctx: EffectContext) -> torch.Tensor:
+        s = smoothstep((ctx.signed_distance() - self.params.d0) / (self.params.d1 - self.params.d0))
+        return (self.excess * ctx.masses * s)[:, None] * ctx.gravity.to(ctx.positions.dtype)[None, :]

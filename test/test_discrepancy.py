@@ -1,0 +1,172 @@
+"""Discrepancy workflow (issue #8): the new effect terms (zero at init, direction of force),
+the statistics that name a winner, and the workflow end to end on tiny effect-free data
+(mechanics, report schema, negative control)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from soma_ros.core.effects import EffectContext, build_effect
+from trainer.discrepancy import bootstrap_explained, decide, load_discrepancy_config
+
+torch.set_num_threads(1)
+
+G = torch.tensor([0.0, 0.0, -9.81])
+N = torch.tensor([0.0, 0.0, 1.0])
+
+
+def _ctx(pos, vel, cp=None, cpv=None, grip=None):
+    n = pos.shape[0]
+    return EffectContext(
+        positions=pos, velocities=vel, masses=torch.full((n,), 0.01), attrs=torch.zeros(n, 0), gravity=G,
+        plane_normal=N, plane_offset=torch.tensor(0.0), dt=1 / 30,
+        control_points=cp, control_velocities=cpv, gripper=None if grip is None else torch.tensor(grip))
+
+
+def _random_ctx(seed=0, robot=True):
+    g = torch.Generator().manual_seed(seed)
+    pos = torch.rand(50, 3, generator=g) * torch.tensor([0.3, 0.3, 0.1])
+    vel = torch.randn(50, 3, generator=g) * 0.2
+    cp = pos[:3] + 0.005
+    return _ctx(pos, vel, cp, torch.randn(3, 3, generator=g) * 0.1, 0.0) if robot else _ctx(pos, vel)
+
+
+@pytest.mark.parametrize("name", ["table_friction", "gripper_slip", "mass_scale"])
+def test_new_terms_are_zero_at_init_and_fit_through_gradients(name):
+    eff = build_effect({"name": name})
+    ctx = _random_ctx()
+    f = eff(ctx)
+    assert f.shape == (50, 3) and torch.count_nonzero(f) == 0
+    # a gradient reaches the parameters (so the workflow can fit them)
+    for p in eff.parameters():
+        with torch.no_grad():
+            p.fill_(0.3)
+    eff(ctx).pow(2).sum().backward()
+    assert all(p.grad is not None and float(p.grad.abs().sum()) > 0 for p in eff.parameters())
+
+
+def test_table_friction_opposes_tangential_velocity_only_in_contact():
+    eff = build_effect({"name": "table_friction", "params": {"mu": 0.5}})
+    pos = torch.tensor([[0.0, 0.0, 0.002], [0.1, 0.0, 0.002], [0.2, 0.0, 0.1]])
+    vel = torch.tensor([[0.3, -0.2, 0.0], [0.0, 0.0, 0.4], [0.3, 0.0, 0.0]])
+    f = eff(_ctx(pos, vel))
+    assert float(f[0] @ vel[0]) < 0 and abs(float(f[0, 2])) < 1e-9  # opposes sliding, tangential
+    assert torch.allclose(f[1], torch.zeros(3), atol=1e-9)  # normal motion: no friction
+    assert torch.allclose(f[2], torch.zeros(3))  # above the contact band
+    # Coulomb magnitude mu m g (w ~ 1 at 2 mm, speed >> v_eps)
+    assert abs(float(f[0].norm()) - 0.5 * 0.01 * 9.81) < 0.1 * 0.5 * 0.01 * 9.81
+    # signed: mu < 0 pushes along the velocity (a table more slippery than the model believes)
+    eff2 = build_effect({"name": "table_friction", "params": {"mu": -0.5}})
+    assert float(eff2(_ctx(pos, vel))[0] @ vel[0]) > 0
+
+
+def test_gripper_slip_acts_on_held_material_only_when_closed():
+    eff = build_effect({"name": "gripper_slip", "params": {"coupling": 2.0, "sag": 0.5}})
+    pos = torch.tensor([[0.0, 0.0, 0.05], [0.2, 0.0, 0.05]])
+    vel = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    cp, cpv = torch.tensor([[0.0, 0.0, 0.05]]), torch.tensor([[0.0, 0.0, 0.2]])
+    f = eff(_ctx(pos, vel, cp, cpv, 0.0))
+    only_c = build_effect({"name": "gripper_slip", "params": {"coupling": 2.0}})(_ctx(pos, vel, cp, cpv, 0.0))
+    assert float(only_c[0, 2]) > 0 and torch.allclose(only_c[1], torch.zeros(3))  # follows the gripper
+    only_s = build_effect({"name": "gripper_slip", "params": {"sag": 0.5}})(_ctx(pos, vel, cp, cpv, 0.0))
+    assert float(only_s[0, 2]) < 0  # slides down out of the grasp
+    assert torch.count_nonzero(eff(_ctx(pos, vel, cp, cpv, 1.0))) == 0  # gripper open: nothing held
+    assert torch.count_nonzero(eff(_ctx(pos, vel))) == 0  # no robot
+
+
+def test_mass_scale_weighs_only_lifted_material():
+    eff = build_effect({"name": "mass_scale", "params": {"excess": 1.0}})
+    pos = torch.tensor([[0.0, 0.0, 0.005], [0.0, 0.0, 0.2]])
+    f = eff(_ctx(pos, torch.zeros(2, 3)))
+    assert torch.allclose(f[0], torch.zeros(3))
+    torch.testing.assert_close(f[1], 0.01 * G)
+
+
+def test_decide_names_a_clear_winner_and_refuses_noise():
+    rng = np.random.default_rng(0)
+    base = [1.0 + 0.1 * rng.random(15) for _ in range(4)]
+    good = [b * (0.5 + 0.1 * rng.standard_normal(15)) for b in base]  # explains about half
+    noise = [b * (1 + 0.05 * rng.standard_normal(15)) for b in base]
+    s = bootstrap_explained(base, {"good": good, "noise": noise}, 400, seed=1)
+    ex = {"good": float(1 - sum(x.sum() for x in good) / sum(x.sum() for x in base)), "noise": float(1 - sum(x.sum() for x in noise) / sum(x.sum() for x in base))}
+    named, rows, info = decide(ex, s, 0.05, 0.1)
+    assert named == "good" and rows[0]["name"] == "good" and info["significant"]
+    assert 0.3 < rows[0]["ci_low"] < ex["good"] < rows[0]["ci_high"] < 0.7
+    named, _, info = decide({"noise": ex["noise"]}, {"noise": s["noise"]}, 0.05, 0.1)
+    assert named == "none" and not info["significant"]
+    # two candidates explaining the same: no significant margin -> none
+    s2 = bootstrap_explained(base, {"a": good, "b": [g * 1.0 for g in good]}, 300, seed=2)
+    assert decide({"a": ex["good"], "b": ex["good"]}, s2, 0.05, 0.1)[0] == "none"
+
+
+def test_config_rejects_unknown_candidates():
+    with pytest.raises(ValueError, match="unknown candidate"):
+        load_discrepancy_config("fast", {"candidates": ["no_such_effect"]})
+
+
+# ----------------------------------------------------------------------------- end to end
+@pytest.fixture(scope="module")
+def clean_run(tmp_path_factory):
+    """A barely trained model on 4 tiny effect-free episodes (the mechanics, not the accuracy)."""
+    from soma_ros.world import generate_dataset, load_world_config
+    from trainer.config import load_train_config
+    from trainer.train import train
+
+    root = tmp_path_factory.mktemp("disc")
+    data = root / "clean"
+    generate_dataset(load_world_config(), "rope", "tiny", data, episodes=4, seed=3, frames=12, progress=False)
+    cfg = load_train_config("tiny", {
+        "scene": {"photometric_iters": 3},
+        "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 1, "stride": 2, "length_start": 2},
+                     "stage2": {"epochs": 1, "window": 3}},
+        "run": {"val_episodes": 1, "val_frame_stride": 3}})
+    train(cfg, data, root / "run", log=lambda *a, **k: None)
+    return root, data
+
+
+def test_workflow_end_to_end_negative_control(clean_run):
+    from soma_ros.core.checkpoint import load_checkpoint
+    from trainer.discrepancy import run_discrepancy
+
+    root, data = clean_run
+    cfg = load_discrepancy_config("fast", {"frame_stride": 3, "fit_iters": 2, "eval_frame_stride": 3})
+    out = root / "out"
+    rep = run_discrepancy(root / "run" / "checkpoint.pt", data, out, cfg, log=lambda *a: None)
+    disk = json.loads((out / "report.json").read_text())
+    assert disk["named_effect"] == rep["named_effect"]
+    # schema
+    assert {"named_effect", "ranking", "gap_before", "gap_after"} <= set(disk)
+    assert [r["name"] for r in disk["ranking"]] and {r["name"] for r in disk["ranking"]} == set(cfg.candidates)
+    for r in disk["ranking"]:
+        assert math.isfinite(r["explained_fraction"]) and r["uncertainty"] >= 0 and r["explained_fraction"] <= 1
+    ex = [r["explained_fraction"] for r in disk["ranking"]]
+    assert ex == sorted(ex, reverse=True)
+    for k in ("gap_before", "gap_after"):
+        assert disk[k]["rmse"] > 0 and disk[k]["chamfer"] > 0 and disk[k]["points"] > 0
+    # negative control: effect-free data -> nothing significant, and then the model is unchanged
+    assert disk["named_effect"] == "none", disk["decision"]
+    assert disk["gap_after"]["rmse"] == pytest.approx(disk["gap_before"]["rmse"])
+    for f in ("report.md", "ranking.png", "residual_time.png", "residual_clusters.png", "gap.png"):
+        assert (out / f).is_file(), f
+    sim = load_checkpoint(out / "model" / "checkpoint.pt")
+    assert set(sim.effects.keys()) == {"gravity", "support", "robot"}
+    # a candidate added to the trained model changes nothing until fitted (zero-init), bit for bit
+    from trainer.discrepancy import EpisodeObs, residual_per_frame
+    from trainer.evaluate import EvalContext
+    from trainer.config import load_train_config
+
+    ctx = EvalContext(data, load_train_config(root / "run" / "train_config.yaml"), root / "run" / "scene")
+    ref = ctx.refs[0]
+    ep = ctx.store.episode(ref.name)
+    ob = EpisodeObs(ref.name, ref.task, ref.split, ep.dt, ep.control_points.float(), ep.gripper.float(),
+                    ctx.store.initial_splats(ref.name), [3, 6, 9],
+                    [ep.object_points([t])[0][:64] for t in (3, 6, 9)])
+    r0 = residual_per_frame(sim, ob, ctx.scene)
+    for name in ("table_friction", "gripper_slip", "mass_scale"):
+        sim.add_effect({"name": name})
+    np.testing.assert_array_equal(residual_per_frame(sim, ob, ctx.scene), r0)
