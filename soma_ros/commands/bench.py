@@ -17,6 +17,7 @@ from soma_ros.paths import PACKAGE_DIR
 #: (sub-command, module with add_arguments/run, one-line help)
 SUBCOMMANDS: list[tuple[str, str, str]] = [
     ("core", "benchmarks.bench_core", "simulator step time and render time vs splat count (cpu/paper models)"),
+    ("accuracy", "benchmarks.bench_accuracy", "accuracy table (Table 1 form) with baselines on reference-world data"),
 ]
 
 
