@@ -97,7 +97,7 @@ def write_report(out: Path, held_bag: Path, live_bag: Path, eval_dir: Path, cams
         *[f"| {k} | {v} |" for k, v in stats.items()], "",
         "## Open-loop evaluation on held-out episodes (`soma eval`)", "",
     ]
-    table = eval_dir / "metrics.md"
+    table = eval_dir / "table.md"
     lines += [table.read_text() if table.is_file() else "(no evaluation table)", ""]
     lines += ["## Contact sheet", "",
               "Each row a frame of the held-out episode; per camera: measured | live simulation | |error| heat map.", "",
