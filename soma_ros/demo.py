@@ -50,7 +50,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="runs/demo")
     ap.add_argument("--object", default="rope")
-    ap.add_argument("--episodes", type=int, default=6)
+    ap.add_argument("--episodes", type=int, default=8)
+    ap.add_argument("--task", default="lift", help="reference-world task of every episode (lift, drag, fold)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--train-config", default="config/train/tiny.yaml")
     ap.add_argument("--rate", type=float, default=1.0, help="bag replay rate factor")
@@ -65,7 +66,8 @@ def main(argv=None) -> int:
     data = out / "data"
     if not (data / "manifest.json").is_file():
         _run(py + ["soma_ros.cli", "world", "--object", args.object, "--preset", "tiny", "--episodes",
-                   str(args.episodes), "--seed", str(args.seed), "--out", str(data)], env, "reference world")
+                   str(args.episodes), "--seed", str(args.seed), "--task", args.task, "--out", str(data)], env,
+             "reference world")
     else:
         _log(f"reusing dataset {data}")
     manifest = json.loads((data / "manifest.json").read_text())
@@ -82,8 +84,16 @@ def main(argv=None) -> int:
          env, "training")
     ckpt, scene = out / "checkpoint.pt", out / "scene"
 
-    # 3. live: node + recorder + bag player
+    # 3. live: node + recorder + bag player. The node starts from the run's G_0; the
+    #    held-out episode starts from G_0 aligned to its own first frame, which is sent
+    #    through /soma/reset exactly as a user would (soma scene reset --file).
+    from trainer.evaluate import EvalContext
+
+    from .core.ply import write_ply
     from .nodes.testing import RosProcess
+
+    init_ply = out / "heldout_initial_scene.ply"
+    write_ply(init_ply, EvalContext.from_run(out, data).store.initial_splats(held["name"]))
 
     live_bag = out / "live_bag"
     if live_bag.exists():
@@ -103,6 +113,8 @@ def main(argv=None) -> int:
                  ":sensor_msgs/msg/PointCloud2" if t.endswith("splats") else
                  ":sensor_msgs/msg/JointState" if t == "/joint_states" else ":sensor_msgs/msg/Image") for t in topics]],
             env, "recorder")
+        _run(py + ["soma_ros.cli", "scene", "reset", "--file", str(init_ply), "--timeout", "120"], env,
+             "resetting the live node to the held-out episode's initial scene")
         _run(py + ["soma_ros.nodes.bag_player", str(held_bag), "--rate", str(args.rate), "--wait-for-subscribers", "2",
                    "--wait-timeout", "120"], env, "replaying the held-out bag into the live node")
         time.sleep(1.0)  # let the last images of the replay arrive

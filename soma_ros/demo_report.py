@@ -71,7 +71,9 @@ def write_report(out: Path, held_bag: Path, live_bag: Path, eval_dir: Path, cams
                     continue
                 k = int(np.argmin([abs(s - target) for s, _ in imgs]))
                 sim = imgs[k][1]
-                gt = meas.cameras[c].rgb[f]
+                cs = meas.cameras[c]
+                keep = cs.object_mask[f] & ~(cs.robot_mask[f] if cs.robot_mask is not None else False)
+                gt = (cs.rgb[f] * keep[..., None]).astype(np.uint8)  # the paper's masking: object only
                 if sim.shape != gt.shape:
                     sim = cv2.resize(sim, (gt.shape[1], gt.shape[0]), interpolation=cv2.INTER_AREA)
                 err = np.abs(sim.astype(np.int16) - gt.astype(np.int16)).mean(-1).clip(0, 255).astype(np.uint8)
@@ -100,7 +102,8 @@ def write_report(out: Path, held_bag: Path, live_bag: Path, eval_dir: Path, cams
     table = eval_dir / "table.md"
     lines += [table.read_text() if table.is_file() else "(no evaluation table)", ""]
     lines += ["## Contact sheet", "",
-              "Each row a frame of the held-out episode; per camera: measured | live simulation | |error| heat map.", "",
+              "Each row a frame of the held-out episode; per camera: measured x object mask (robot pixels removed) | "
+              "live simulation | |error| heat map.", "",
               f"![contact sheet]({sheet_path.name})", ""]
     rp = out / "report.md"
     rp.write_text("\n".join(lines))
