@@ -52,7 +52,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from soma_ros.core.checkpoint import save_checkpoint
+from soma_ros.core.checkpoint import atomic_torch_save, save_checkpoint
 from soma_ros.core.config import load_object_config
 from soma_ros.core.hierarchy import Hierarchy
 from soma_ros.core.metrics import masked_l2_dssim_loss
@@ -514,20 +514,7 @@ def _point_distance(means: torch.Tensor, points: torch.Tensor) -> float:
 
 # --------------------------------------------------------------------------- files
 def _atomic_torch_save(obj, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(obj, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    atomic_torch_save(obj, path)
 
 
 def _atomic_write_text(path: Path, text: str) -> None:

@@ -65,6 +65,26 @@ def _check_safe(value: Any, where: str) -> None:
     )
 
 
+def atomic_torch_save(obj: Any, path: Union[str, Path]) -> None:
+    """torch.save to a temp file in the same folder, fsync, then os.replace: readers see the
+    old file or the new one, never a partial one (also after a kill)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
 def save_checkpoint(path: Union[str, Path], simulator: Simulator, extra: Optional[dict] = None) -> Path:
     """Write ``simulator`` (config, weights, normalisers, hierarchy, effects) to ``path`` atomically."""
     path = Path(path)
@@ -81,20 +101,7 @@ def save_checkpoint(path: Union[str, Path], simulator: Simulator, extra: Optiona
         "graphs": simulator.graphs.to_dict() if simulator.graphs is not None else None,
         "extra": extra,
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(payload, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    atomic_torch_save(payload, path)
     try:  # make the rename durable
         dfd = os.open(path.parent, os.O_RDONLY)
         try:
