@@ -19,7 +19,7 @@ STAMP_PKG := $(VENV)/.soma-pkg
 STAMP_SYS := build/.soma-sysdeps
 
 # Network rule: DDS discovery stays on loopback, and each run gets its own domain.
-export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
+export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export ROS_DOMAIN_ID ?= $(shell echo $$(( ($$$$ % 190) + 5 )))
 # CPU hygiene for 2-core machines (see ENVIRONMENT_NOTES): one torch thread per
 # process, offscreen EGL for MuJoCo, and an allocator that does not page-fault on
