@@ -33,6 +33,8 @@ from typing import Any, Mapping, Optional, Union
 import yaml
 
 from soma_ros.core.config import ConfigError, from_dict, to_dict
+
+from .bags import TopicConfig
 from soma_ros.paths import resolve_config
 
 __all__ = [
@@ -52,17 +54,9 @@ __all__ = [
 
 
 @dataclass
-class TopicNames:
-    """Topic names of the rig (``{cam}`` = camera name); see :class:`trainer.bags.TopicConfig`."""
-
-    joint_states: str = "/joint_states"
-    color: str = "/{cam}/color/image_raw"
-    camera_info: str = "/{cam}/color/camera_info"
-    depth: str = "/{cam}/aligned_depth_to_color/image_raw"
-    object_mask: str = "/{cam}/object_mask"
-    robot_mask: str = "/{cam}/robot_mask"
-    tf_static: str = "/tf_static"
-    world_frame: str = "world"
+class TopicNames(TopicConfig):
+    """Topic names of the rig (``{cam}`` = camera name): the fields of
+    :class:`trainer.bags.TopicConfig`, validated as a config section."""
 
     def validate(self, where: str = "data.topics") -> None:
         for f in dataclasses.fields(self):

@@ -139,10 +139,7 @@ def load_dataset(
 
 
 def topic_config(cfg: DataConfig) -> TopicConfig:
-    t = cfg.topics
-    return TopicConfig(joint_states=t.joint_states, color=t.color, camera_info=t.camera_info, depth=t.depth,
-                       object_mask=t.object_mask, robot_mask=t.robot_mask, tf_static=t.tf_static,
-                       world_frame=t.world_frame)
+    return cfg.topics  # TopicNames is a validated TopicConfig
 
 
 # --------------------------------------------------------------------------- episode tensors
