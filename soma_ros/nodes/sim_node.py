@@ -17,9 +17,13 @@ Topics (``<p>`` = the `topic_prefix` parameter, default /soma):
 Start: ``soma_sim_node --ros-args -p checkpoint:=RUN/checkpoint.pt -p scene:=RUN/scene``
 (or ``--params-file config/sim_node.yaml``).
 
-Physics and rendering run in separate callback groups on a multi-threaded
-executor, so a slow render never delays a step; publishers keep the last
-message only, so a slow subscriber never stalls the node.
+Threads: physics steps, renders and splat clouds each run in their own
+fixed-rate thread (:mod:`.loops`), so a slow render never delays a step; the
+executor thread only takes /joint_states and reset requests, so input is never
+queued behind a step. Every published image, depth map, cloud and camera TF
+comes from one consistent frame (the state of one step, the joint state that
+step used and that step's stamp). Publishers keep the last message only, so a
+slow subscriber never stalls the node.
 """
 
 from __future__ import annotations
@@ -30,14 +34,13 @@ import threading
 import time
 from collections import deque
 from pathlib import Path
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 import rclpy
 from geometry_msgs.msg import TransformStamped
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, JointState, PointCloud2
 from soma_msgs.msg import SimStatus
@@ -54,6 +57,7 @@ from .conversions import (
     splats_to_cloud,
     stamp_from_ns,
 )
+from .loops import FixedRateLoop
 from .qos import JOINT_STATES_QOS, LATCHED_QOS, SENSOR_OUT_QOS, STATUS_QOS
 
 
@@ -83,6 +87,16 @@ def _matrix_to_tf(T: np.ndarray, parent: str, child: str, stamp) -> TransformSta
     tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = (float(v) for v in T[:3, 3])
     tf.transform.rotation.w, tf.transform.rotation.x, tf.transform.rotation.y, tf.transform.rotation.z = (float(v) for v in q)
     return tf
+
+
+class Frame(NamedTuple):
+    """What one step left behind, published as a unit by the output threads."""
+
+    state: object  # SimState
+    template: Splats
+    joint_vec: Optional[np.ndarray]  # the joint state this step used (None: no robot yet)
+    stamp_ns: int  # node clock at the step
+    step: int
 
 
 class RateMeter:
@@ -155,11 +169,6 @@ class SomaSimNode(Node):
             f"loaded {ckpt} and scene {scene}: {len(self.live.template)} splats, cameras "
             f"{', '.join(c.name for c in self.live.cameras)}, joints {', '.join(self.live.required_joints)}")
 
-        self._step_group = MutuallyExclusiveCallbackGroup()
-        self._render_group = MutuallyExclusiveCallbackGroup()
-        self._service_group = MutuallyExclusiveCallbackGroup()
-        self._input_group = MutuallyExclusiveCallbackGroup()
-
         self.pub_splats = self.create_publisher(PointCloud2, f"{prefix}/splats", SENSOR_OUT_QOS)
         self.pub_status = self.create_publisher(SimStatus, f"{prefix}/status", STATUS_QOS)
         self.pub_tf = self.create_publisher(TFMessage, "/tf", 100)
@@ -169,9 +178,8 @@ class SomaSimNode(Node):
             self.pub_img[c.name] = self.create_publisher(Image, f"{prefix}/{c.name}/image_raw", SENSOR_OUT_QOS)
             self.pub_depth[c.name] = self.create_publisher(Image, f"{prefix}/{c.name}/depth", SENSOR_OUT_QOS)
             self.pub_info[c.name] = self.create_publisher(CameraInfo, f"{prefix}/{c.name}/camera_info", SENSOR_OUT_QOS)
-        self.sub_js = self.create_subscription(JointState, "/joint_states", self._on_joint_state, JOINT_STATES_QOS,
-                                               callback_group=self._input_group)
-        self.srv_reset = self.create_service(ResetScene, f"{prefix}/reset", self._on_reset, callback_group=self._service_group)
+        self.sub_js = self.create_subscription(JointState, "/joint_states", self._on_joint_state, JOINT_STATES_QOS)
+        self.srv_reset = self.create_service(ResetScene, f"{prefix}/reset", self._on_reset)
 
         self._publish_static_tf()
         self._step_ms = 0.0
@@ -179,14 +187,28 @@ class SomaSimNode(Node):
         self._lag_ms = 0.0
         self._step_rate = RateMeter()
         self._image_rate = RateMeter()
-        self._last_vec: Optional[np.ndarray] = None
         self._step_lock = threading.Lock()
-        self._last_step_ns = 0
-        self.timer = self.create_timer(1.0 / self.rate_hz, self._on_step, callback_group=self._step_group)
+        self._set_frame(None)
+        self.loops = [FixedRateLoop("soma_step", self.rate_hz, self._on_step)]
         if self.render_rate_hz > 0:
-            self.render_timer = self.create_timer(1.0 / self.render_rate_hz, self._on_render, callback_group=self._render_group)
+            self.loops.append(FixedRateLoop("soma_render", self.render_rate_hz, self._on_render))
         if self.splat_rate_hz > 0:
-            self.splat_timer = self.create_timer(1.0 / self.splat_rate_hz, self._on_splats, callback_group=self._render_group)
+            self.loops.append(FixedRateLoop("soma_splats", self.splat_rate_hz, self._on_splats))
+
+    def start(self) -> None:
+        """Start the physics and output threads (after the node is in an executor)."""
+        for loop in self.loops:
+            loop.start()
+
+    def stop(self) -> None:
+        """Stop the threads; nothing is published after this returns."""
+        for loop in self.loops:
+            if not loop.stop(timeout=10.0):
+                self.get_logger().warn(f"thread {loop.name} did not stop within 10 s")
+
+    def _set_frame(self, vec: Optional[np.ndarray], stamp_ns: Optional[int] = None) -> None:
+        state, template, steps = self.live.snapshot()
+        self._frame = Frame(state, template, vec, int(stamp_ns or self.get_clock().now().nanoseconds), steps)
 
     # ----------------------------------------------------------------- inputs
     def _on_joint_state(self, msg: JointState) -> None:
@@ -221,6 +243,7 @@ class SomaSimNode(Node):
                 if init is not None:
                     self.joints.clear()
                     self.joints.push(*init, self.get_clock().now().nanoseconds)
+                self._set_frame(self.joints.sample())
         except Exception as exc:  # noqa: BLE001 - any failure must leave the old scene running
             resp.num_splats = len(self.live.template)
             resp.success = False
@@ -258,15 +281,14 @@ class SomaSimNode(Node):
             except Exception as exc2:  # noqa: BLE001
                 self.get_logger().error(f"reset after a failed step failed too ({exc2})", throttle_duration_sec=2.0)
             return
-        self._last_vec = vec
+        self._set_frame(vec, now)
         self._step_ms = ms
         self._step_rate.tick()
-        self._last_step_ns = now
         self._publish_status("running" if vec is not None else "waiting_for_joint_states")
 
     def _publish_status(self, state: str) -> None:
         st = SimStatus()
-        st.header.stamp = stamp_from_ns(self._last_step_ns)
+        st.header.stamp = stamp_from_ns(self._frame.stamp_ns)
         st.header.frame_id = self.sim_frame
         st.state = state
         st.step = self.live.steps
@@ -288,16 +310,13 @@ class SomaSimNode(Node):
             self.get_logger().error(f"render failed: {exc}", throttle_duration_sec=5.0)
 
     def _render_and_publish(self) -> None:
-        state, template, _ = self.live.snapshot()
-        vec = self._last_vec
-        if vec is None and any(c.mount_link for c in self.live.cameras):
-            vec = self.joints.sample()
-            if vec is None:
-                return  # mounted cameras need a joint state
+        frame = self._frame  # one step's state, joint state and stamp, taken as a unit
+        if frame.joint_vec is None and any(c.mount_link for c in self.live.cameras):
+            return  # mounted cameras need a joint state
         t0 = time.perf_counter()
-        out, cams = self.live.render(state, template, vec)
+        out, cams = self.live.render(frame.state, frame.template, frame.joint_vec)
         self._render_ms = (time.perf_counter() - t0) * 1e3
-        stamp = stamp_from_ns(self._last_step_ns or self.get_clock().now().nanoseconds)
+        stamp = stamp_from_ns(frame.stamp_ns)
         rgb = (out.rgb.clamp(0, 1) * 255).round().to(dtype=__import__("torch").uint8).cpu().numpy()
         depth = out.depth.cpu().numpy()
         c2w = cams.cam_to_world().cpu().numpy()
@@ -313,8 +332,9 @@ class SomaSimNode(Node):
 
     def _on_splats(self) -> None:
         try:
-            splats = self.live.current_splats()
-            stamp = stamp_from_ns(self._last_step_ns or self.get_clock().now().nanoseconds)
+            frame = self._frame
+            splats = frame.state.to_splats(frame.template)
+            stamp = stamp_from_ns(frame.stamp_ns)
             self.pub_splats.publish(splats_to_cloud(splats, self.sim_frame, stamp))
         except Exception as exc:  # noqa: BLE001 - as for renders
             self.get_logger().error(f"splat publish failed: {exc}", throttle_duration_sec=5.0)
@@ -330,8 +350,9 @@ def main(argv: Optional[list[str]] = None) -> int:
     node = None
     try:
         node = SomaSimNode()
-        executor = MultiThreadedExecutor(num_threads=4)
+        executor = SingleThreadedExecutor()
         executor.add_node(node)
+        node.start()
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -340,6 +361,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         return 1
     finally:
         if node is not None:
+            node.stop()
             node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()
