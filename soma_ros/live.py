@@ -38,6 +38,11 @@ class JointStateRejected(ValueError):
     """A joint state that was not used, with the reason."""
 
 
+class SimulationDiverged(FloatingPointError):
+    """A step produced a state that cannot be physical (non-finite, or splats far outside
+    the region the object can reach); the state is not taken."""
+
+
 class JointStateFilter:
     """Validated joint-state history over a fixed set of required joint names.
 
@@ -141,8 +146,14 @@ class LiveSimulator:
     """A running rollout: state, scene, robot conditioning and cameras."""
 
     def __init__(self, sim: Simulator, bundle: SceneBundle, robot: RobotModel,
-                 camera_names: Optional[Sequence[str]] = None, render_scale: float = 1.0) -> None:
+                 camera_names: Optional[Sequence[str]] = None, render_scale: float = 1.0,
+                 max_travel_m: float = 2.0) -> None:
+        """``max_travel_m``: a step that puts any splat further than this from the initial
+        scene's bounding sphere raises :class:`SimulationDiverged` (0 disables the check).
+        A tabletop object does not leave a robot's workspace; a learned model driven
+        outside its training data can run away at its speed bound instead."""
         self.sim = sim.eval()
+        self.max_travel_m = float(max_travel_m)
         self.bundle = bundle
         self.robot = robot
         self.scene = bundle.scene_context()
@@ -179,10 +190,14 @@ class LiveSimulator:
                 # count while the running state is the old scene's
                 sim.hierarchy, sim.graphs, sim.splat_attrs = bound
                 raise
+            m = splats.means.detach().to(state.means.dtype)
+            center = m.mean(dim=0)
+            radius = float((m - center).norm(dim=-1).max())
             with self._lock:
                 self.template = splats
                 self.state = state
                 self.steps = 0
+                self._bound = (center, radius + self.max_travel_m)
         return len(splats)
 
     # ------------------------------------------------------------------ robot
@@ -235,7 +250,14 @@ class LiveSimulator:
             with torch.no_grad():
                 new = self.sim.step(state, act)
             if not torch.isfinite(new.means).all():
-                raise FloatingPointError("the simulator produced non-finite splat positions")
+                raise SimulationDiverged("the simulator produced non-finite splat positions")
+            if self.max_travel_m > 0:
+                center, limit = self._bound
+                far = float((new.means.detach() - center).norm(dim=-1).max())
+                if far > limit:
+                    raise SimulationDiverged(
+                        f"a splat is {far - limit + self.max_travel_m:.2f} m outside the initial scene's bounding "
+                        f"sphere (limit {self.max_travel_m:.2f} m): the model left the reachable region")
             with self._lock:
                 self.state = new
                 self.steps += 1
@@ -258,11 +280,12 @@ class LiveSimulator:
 
 
 def load_live(checkpoint: str, scene: str, camera_names: Optional[Sequence[str]] = None,
-              render_scale: float = 1.0, device: str = "cpu") -> LiveSimulator:
+              render_scale: float = 1.0, device: str = "cpu", max_travel_m: float = 2.0) -> LiveSimulator:
     """Build a LiveSimulator from a checkpoint file and a scene bundle directory."""
     from .core.checkpoint import load_checkpoint
 
     sim = load_checkpoint(checkpoint, map_location=device)
     bundle = SceneBundle.load(scene)
     robot = RobotModel.from_config(bundle.robot_config)
-    return LiveSimulator(sim, bundle, robot, camera_names=camera_names, render_scale=render_scale)
+    return LiveSimulator(sim, bundle, robot, camera_names=camera_names, render_scale=render_scale,
+                         max_travel_m=max_travel_m)

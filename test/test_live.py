@@ -232,6 +232,36 @@ def test_gripper_out_of_reach_moves_nothing_and_through_the_rope_moves_it(fresh,
     assert torch.allclose(sp.covariances(), state.covs, atol=1e-9)
 
 
+def test_a_step_that_leaves_the_workspace_raises_and_keeps_the_last_state(untrained_run, poser):
+    """max_travel_m: a step putting a splat further than that outside the initial scene's
+    bounding sphere raises SimulationDiverged and the running state stays the last good one."""
+    from soma_ros.live import SimulationDiverged
+
+    live = load_live(str(untrained_run[0]), str(untrained_run[1]), max_travel_m=0.002)
+    m, x_lo, x_hi = _rope_axis(live)
+    g = (x_lo + 0.25 * (x_hi - x_lo), float(np.median(m[:, 1])), float(np.median(m[:, 2])))
+    down = poser.line((g[0], g[1], g[2] + 0.12), g, 30, q0=poser.solve((0.5, 0.02, TABLE_Z + 0.2)))
+    caught = None
+    for k, v in enumerate(down):
+        before = live.snapshot()
+        try:
+            live.step(v)
+        except SimulationDiverged as exc:
+            caught = (k, str(exc))
+            after = live.snapshot()
+            assert after[0] is before[0] and after[2] == before[2]  # not taken
+            break
+    assert caught is not None and "outside the initial scene's bounding sphere" in caught[1]
+    x = live.snapshot()[0].means.double()
+    c = m.mean(0)
+    assert float((x - torch.as_tensor(c)).norm(dim=1).max()) <= float(np.linalg.norm(m - c, axis=1).max()) + 0.002 + 1e-9
+    # the same descent with the check off runs through
+    free = load_live(str(untrained_run[0]), str(untrained_run[1]), max_travel_m=0.0)
+    for v in down:
+        free.step(v)
+    assert torch.isfinite(free.snapshot()[0].means).all()
+
+
 def test_reset_swaps_atomically_and_a_new_count_rebinds(fresh, poser):
     from soma_ros.core.scenes import synthetic_rope
 

@@ -16,6 +16,7 @@ world rope dataset once per session.
 from __future__ import annotations
 
 import math
+import os
 import re
 import subprocess
 import sys
@@ -438,6 +439,78 @@ def test_gripper_out_of_reach_keeps_the_rope_still_and_through_it_moves_it(ros_e
         st = probe.last_status()
         assert st.state == "running" and st.joint_states_rejected == 0
         assert node.alive()
+
+
+def test_a_step_that_leaves_the_workspace_restarts_the_scene_and_is_counted(ros_env, untrained_run, probe, kin):
+    """Divergence guard: with max_object_travel_m at 5 mm, pushing the rope further than that
+    makes the step fail as diverged; the node logs it, restarts the scene from its initial
+    state (counted in /soma/status), never publishes the runaway state, and keeps going."""
+    travel = 0.005
+    with sim_node(ros_env, untrained_run, "render_rate_hz:=0.0", "splat_rate_hz:=20.0",
+                  f"max_object_travel_m:={travel}") as node:
+        _started(probe, node, kin["hover"], key=("splats",))
+        assert probe.hold(kin["hover"], lambda: probe.last_status().step > 10, 30)
+        assert probe.last_status().failure_restarts == 0  # at rest: nothing to catch
+        x0 = kin["x0"]
+        center = x0.mean(0)
+        limit = float(np.linalg.norm(x0 - center, axis=1).max()) + travel
+        states = set()
+        worst = {"d": 0.0}
+
+        def watch() -> bool:
+            st = probe.last_status()
+            states.add(st.state)
+            worst["d"] = max(worst["d"], float(np.linalg.norm(_means(probe.last("splats")) - center, axis=1).max()))
+            return st.failure_restarts >= 3
+
+        probe.play(kin["descent"], hz=30)
+        assert probe.hold(kin["in_rope"], watch, 60), node.output()[-3000:]
+        assert "restarted_after_failure" in states and probe.last_status().state in ("running", "restarted_after_failure")
+        assert worst["d"] <= limit + 1e-6, (worst["d"], limit)  # no published cloud left the bound
+        assert re.search(r"step failed \(a splat is .* outside the initial scene's bounding sphere", node.output())
+        assert node.alive()
+
+
+def test_parameters_file_in_config_matches_the_node_and_starts_it(ros_env, untrained_run, probe, kin, ros_context):
+    """config/nodes/sim_node.yaml lists every parameter the node declares with the node's own
+    default, and `--params-file` plus the two required -p start a node that uses the file."""
+    import yaml
+    from rclpy.parameter import Parameter
+    from soma_ros.nodes.sim_node import SomaSimNode
+
+    path = ROOT / "config" / "nodes" / "sim_node.yaml"
+    params = yaml.safe_load(path.read_text())["soma_sim_node"]["ros__parameters"]
+    node = SomaSimNode(context=ros_context, parameter_overrides=[
+        Parameter("checkpoint", value=str(untrained_run[0])), Parameter("scene", value=str(untrained_run[1]))])
+    try:
+        declared = {n: p.value for n, p in node._parameters.items()
+                    if n not in ("use_sim_time", "start_type_description_service")}  # rclpy's own
+    finally:
+        node.destroy_node()
+    assert set(declared) == set(params), set(declared) ^ set(params)
+    for name, value in params.items():
+        if name in ("checkpoint", "scene"):
+            continue
+        got = declared[name]
+        assert (list(got) if isinstance(value, list) else got) == value, (name, got, value)
+
+    # a file that changes the prefix and switches images off, used by a real node
+    custom = dict(params, topic_prefix="/twin", render_rate_hz=0.0)
+    f = Path(ros_env.get("TMPDIR", "/tmp")) / f"sim_node_params_{os.getpid()}.yaml"
+    f.write_text(yaml.safe_dump({"soma_sim_node": {"ros__parameters": custom}}))
+    args = ["--ros-args", "--params-file", str(f), "-p", f"checkpoint:={untrained_run[0]}", "-p", f"scene:={untrained_run[1]}"]
+    proc = RosProcess(SIM, args, ros_env, name="sim_node_params")
+    try:
+        from soma_msgs.msg import SimStatus
+
+        got = []
+        sub = probe.node.create_subscription(SimStatus, "/twin/status", got.append, 10)
+        assert probe.hold(kin["hover"], lambda: len(got) > 3 or not proc.alive(), START_TIMEOUT), proc.output()[-3000:]
+        assert got[-1].state == "running" and got[-1].image_rate_hz == 0.0
+        probe.node.destroy_subscription(sub)
+    finally:
+        proc.stop()
+        f.unlink(missing_ok=True)
 
 
 # --------------------------------------------------------------------------- trained model: lift

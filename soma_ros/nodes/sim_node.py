@@ -15,7 +15,7 @@ Topics (``<p>`` = the `topic_prefix` parameter, default /soma):
   srv  <p>/reset                 soma_msgs/srv/ResetScene
 
 Start: ``soma_sim_node --ros-args -p checkpoint:=RUN/checkpoint.pt -p scene:=RUN/scene``
-(or ``--params-file config/sim_node.yaml``).
+(or ``--params-file config/nodes/sim_node.yaml`` plus those two ``-p``).
 
 Threads: physics steps, renders and splat clouds each run in their own
 fixed-rate thread (:mod:`.loops`), so a slow render never delays a step; the
@@ -140,6 +140,9 @@ class SomaSimNode(Node):
         self.render_rate_hz = _float_param(self, "render_rate_hz", 10.0, "image publish rate, Hz (0 = no images)", 0.0, 120.0)
         self.splat_rate_hz = _float_param(self, "splat_rate_hz", 5.0, "splat cloud publish rate, Hz (0 = none)", 0.0, 120.0)
         self.render_scale = _float_param(self, "render_scale", 1.0, "image scale relative to the bundle's cameras", 0.05, 4.0)
+        self.max_travel = _float_param(self, "max_object_travel_m", 2.0,
+                                       "a step that puts a splat this far outside the initial scene's bounding sphere "
+                                       "counts as diverged: logged, and the scene restarts (0 = no check), m", 0.0, 1000.0)
         self.max_joint_age = _float_param(self, "max_joint_state_age_s", 1.0,
                                           "hold the robot still when the newest joint state is older than this, s; "
                                           "joint states stamped further than this ahead of the node clock are rejected",
@@ -158,7 +161,8 @@ class SomaSimNode(Node):
         from ..live import JointStateFilter, load_live
 
         cams = [c for c in gp("cameras") if c]
-        self.live = load_live(ckpt, scene, camera_names=cams or None, render_scale=self.render_scale, device=gp("device"))
+        self.live = load_live(ckpt, scene, camera_names=cams or None, render_scale=self.render_scale, device=gp("device"),
+                              max_travel_m=self.max_travel)
         if gp("robot_config"):
             from ..core.robot import RobotModel
 
@@ -188,6 +192,7 @@ class SomaSimNode(Node):
         self._step_rate = RateMeter()
         self._image_rate = RateMeter()
         self._step_lock = threading.Lock()
+        self._failure_resets = 0
         self._set_frame(None)
         self.loops = [FixedRateLoop("soma_step", self.rate_hz, self._on_step)]
         if self.render_rate_hz > 0:
@@ -275,11 +280,15 @@ class SomaSimNode(Node):
         try:
             _, ms = self.live.step(vec)
         except Exception as exc:  # noqa: BLE001 - never die on a bad step; report and reset
-            self.get_logger().error(f"step failed ({exc}); resetting to the initial scene", throttle_duration_sec=2.0)
+            self._failure_resets += 1
+            self.get_logger().error(f"step failed ({exc}); restarting from the initial scene "
+                                    f"({self._failure_resets} such restarts so far)", throttle_duration_sec=2.0)
             try:
                 self.live.reset(self.live.template)
+                self._set_frame(vec, now)
             except Exception as exc2:  # noqa: BLE001
                 self.get_logger().error(f"reset after a failed step failed too ({exc2})", throttle_duration_sec=2.0)
+            self._publish_status("restarted_after_failure")
             return
         self._set_frame(vec, now)
         self._step_ms = ms
@@ -300,6 +309,7 @@ class SomaSimNode(Node):
         st.image_rate_hz = float(self._image_rate.rate())
         st.joint_states_received = self.joints.received
         st.joint_states_rejected = self.joints.rejected
+        st.failure_restarts = self._failure_resets
         self.pub_status.publish(st)
 
     # ---------------------------------------------------------------- outputs
