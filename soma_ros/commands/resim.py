@@ -207,20 +207,9 @@ class _Tap:
 # --------------------------------------------------------------------------- simulated messages
 def _transform(T: np.ndarray, parent: str, child: str, stamp):
     """[4, 4] parent <- child -> geometry_msgs/TransformStamped (as soma_sim_node publishes)."""
-    import torch
-    from geometry_msgs.msg import TransformStamped
+    from soma_ros.nodes.conversions import matrix_to_tf
 
-    from soma_ros.core.geometry import rotmat_to_quat
-
-    q = rotmat_to_quat(torch.as_tensor(T[:3, :3], dtype=torch.float64)).numpy()
-    tf = TransformStamped()
-    tf.header.stamp = stamp
-    tf.header.frame_id = parent
-    tf.child_frame_id = child
-    tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = (float(v) for v in T[:3, 3])
-    r = tf.transform.rotation
-    r.w, r.x, r.y, r.z = (float(v) for v in q)
-    return tf
+    return matrix_to_tf(T, parent, child, stamp)
 
 
 class SimFrames:

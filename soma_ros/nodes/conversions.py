@@ -24,6 +24,24 @@ def ns_from_stamp(stamp: Time) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
+def matrix_to_tf(T: np.ndarray, parent: str, child: str, stamp: Optional[Time] = None):
+    """[4, 4] pose of `child` in `parent` -> geometry_msgs/TransformStamped."""
+    import torch
+    from geometry_msgs.msg import TransformStamped
+
+    from ..core.geometry import rotmat_to_quat
+
+    q = rotmat_to_quat(torch.as_tensor(np.asarray(T)[:3, :3], dtype=torch.float64)).numpy()
+    tf = TransformStamped()
+    tf.header.stamp = stamp or Time()
+    tf.header.frame_id = parent
+    tf.child_frame_id = child
+    tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = (float(v) for v in T[:3, 3])
+    r = tf.transform.rotation
+    r.w, r.x, r.y, r.z = (float(v) for v in q)
+    return tf
+
+
 def splats_to_cloud(splats: Splats, frame_id: str, stamp: Optional[Time] = None) -> PointCloud2:
     """Splats -> sensor_msgs/PointCloud2 in the soma_msgs splat layout (with packed rgb)."""
     rec = splats_to_records(splats)

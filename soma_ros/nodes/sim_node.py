@@ -38,7 +38,6 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 import rclpy
-from geometry_msgs.msg import TransformStamped
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -53,6 +52,7 @@ from .conversions import (
     cloud_to_splats_msg,
     image_depth32,
     image_rgb8,
+    matrix_to_tf,
     ns_from_stamp,
     splats_to_cloud,
     stamp_from_ns,
@@ -73,20 +73,6 @@ def load_scene_file(path: str) -> Splats:
     s = load_splats(p)
     s.validate()
     return s
-
-
-def _matrix_to_tf(T: np.ndarray, parent: str, child: str, stamp) -> TransformStamped:
-    from ..core.geometry import rotmat_to_quat
-    import torch
-
-    q = rotmat_to_quat(torch.as_tensor(T[:3, :3], dtype=torch.float64)).numpy()
-    tf = TransformStamped()
-    tf.header.stamp = stamp
-    tf.header.frame_id = parent
-    tf.child_frame_id = child
-    tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = (float(v) for v in T[:3, 3])
-    tf.transform.rotation.w, tf.transform.rotation.x, tf.transform.rotation.y, tf.transform.rotation.z = (float(v) for v in q)
-    return tf
 
 
 class Frame(NamedTuple):
@@ -336,7 +322,7 @@ class SomaSimNode(Node):
             self.pub_img[c.name].publish(image_rgb8(rgb[i], frame, stamp))
             self.pub_depth[c.name].publish(image_depth32(depth[i], frame, stamp))
             self.pub_info[c.name].publish(camera_info(cams.K[i].cpu().numpy(), cams.width, cams.height, frame, stamp))
-            tfs.append(_matrix_to_tf(c2w[i], self.sim_frame, frame, stamp))
+            tfs.append(matrix_to_tf(c2w[i], self.sim_frame, frame, stamp))
         self.pub_tf.publish(TFMessage(transforms=tfs))
         self._image_rate.tick()
 
@@ -351,7 +337,7 @@ class SomaSimNode(Node):
 
     def _publish_static_tf(self) -> None:
         stamp = self.get_clock().now().to_msg()
-        self.pub_tf_static.publish(TFMessage(transforms=[_matrix_to_tf(np.eye(4), self.world_frame, self.sim_frame, stamp)]))
+        self.pub_tf_static.publish(TFMessage(transforms=[matrix_to_tf(np.eye(4), self.world_frame, self.sim_frame, stamp)]))
 
 
 def main(argv: Optional[list[str]] = None) -> int:
