@@ -100,6 +100,16 @@ class StopFlag:
         self._previous.clear()
 
 
+def run_with_stop(body: Callable[[Optional[list[str]], "StopFlag"], int], argv: Optional[list[str]]) -> int:
+    """Run a command's ``body(argv, stop)`` with SIGINT/SIGTERM routed to a StopFlag, installed
+    first: a signal during the (slow) imports inside ``body`` must not be lost."""
+    stop = StopFlag().install()
+    try:
+        return body(argv, stop)
+    finally:
+        stop.restore()
+
+
 # ----------------------------------------------------------------- arguments
 def _positive_float(text: str) -> float:
     v = float(text)
@@ -471,11 +481,7 @@ class BagPlayer:
 # ---------------------------------------------------------------------- main
 def main(argv: Optional[list[str]] = None) -> int:
     """Entry point; `argv` excludes the program name (default: sys.argv[1:])."""
-    stop = StopFlag().install()  # first: a signal during the imports below must not be lost
-    try:
-        return _main(argv, stop)
-    finally:
-        stop.restore()
+    return run_with_stop(_main, argv)
 
 
 def _main(argv: Optional[list[str]], stop: StopFlag) -> int:

@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
-from .bag_player import StopFlag
+from .bag_player import StopFlag, run_with_stop
 
 PROG = "soma_recorder"
 DRAIN_S = 2.0
@@ -308,11 +308,7 @@ class Recorder:
 # ---------------------------------------------------------------------- main
 def main(argv: Optional[list[str]] = None) -> int:
     """Entry point; `argv` excludes the program name (default: sys.argv[1:])."""
-    stop = StopFlag().install()  # first: a signal during the imports below must not be lost
-    try:
-        return _main(argv, stop)
-    finally:
-        stop.restore()
+    return run_with_stop(_main, argv)
 
 
 def _main(argv: Optional[list[str]], stop: StopFlag) -> int:
