@@ -109,6 +109,36 @@ def test_config_rejects_unknown_candidates():
         load_discrepancy_config("fast", {"candidates": ["no_such_effect"]})
 
 
+def test_candidates_are_fitted_as_direct_effects_and_recover_a_hidden_wind():
+    """Mechanics of fit_effect with ``direct`` (the config default): the candidate is added as a
+    direct effect, and with the world = the same random model + a direct wind the fit recovers it."""
+    from soma_ros.core.config import load_model_config
+    from soma_ros.core.scenes import synthetic_rope
+    from soma_ros.core.simulator import SceneContext, Simulator
+    from trainer.discrepancy import EpisodeObs, _rollout, fit_effect, residual_per_frame
+
+    assert load_discrepancy_config("default").direct and load_discrepancy_config("fast").direct
+    torch.manual_seed(0)
+    sp = synthetic_rope(400, seed=1, center=(0.0, 0.0, 0.0))
+    scene = SceneContext.table()
+    sim = Simulator(load_model_config("cpu")).eval()
+    sim.init_state(sp, scene)  # bind
+    world = __import__("copy").deepcopy(sim)
+    world.add_effect({"name": "wind", "direct": True, "accel": [0.0, 1.0, 0.0]})
+    T = 13
+    frames = [4, 8, 12]
+    ob = EpisodeObs("e", None, "train", scene.dt, torch.full((T, 4, 3), 3.0), torch.ones(T), sp, frames, [])
+    with torch.no_grad():
+        ob.points = [st.means[::4].clone() for _, st in _rollout(world, ob, scene, frames)]
+    cfg = load_discrepancy_config("fast", {"fit_iters": 40, "fit_lr": 0.1})
+    model, losses, values = fit_effect(sim, "wind", [ob], scene, cfg, cfg.fit_iters, log=lambda *a: None)
+    assert model.effects.direct_keys == ["wind"] and "wind" not in sim.effects
+    assert abs(values["accel"][1] - 1.0) < 0.2 and abs(values["accel"][0]) < 0.2, values
+    assert float(residual_per_frame(model, ob, scene).mean()) < 0.3 * float(residual_per_frame(sim, ob, scene).mean())
+    feat_cfg = load_discrepancy_config("fast", {"direct": False, "fit_iters": 1})
+    assert fit_effect(sim, "wind", [ob], scene, feat_cfg, 1, log=lambda *a: None)[0].effects.direct_keys == []
+
+
 # ----------------------------------------------------------------------------- end to end
 @pytest.fixture(scope="module")
 def clean_run(tmp_path_factory):

@@ -179,3 +179,154 @@ def test_adding_wind_by_config_changes_force_and_motion():
     with torch.no_grad():
         s1 = sim.init_state(sp, scene)
         assert torch.equal(sim.rollout(s1, [far] * 3)[-1].means, s1.means)
+
+
+# ----------------------------------------------------------------------------- direct effects (residual physics)
+def _still_network(sim: Simulator) -> Simulator:
+    """Zero the network's last decoder layer (no bias): its outputs are exactly 0 whatever the
+    inputs, so only the direct pathway can move the object."""
+    with torch.no_grad():
+        sim.gnn.decoder.last.weight.zero_()
+    return sim
+
+
+def _far() -> RobotAction:
+    return RobotAction(torch.full((30, 3), 3.0), 1.0)
+
+
+def test_direct_spec_parses_roundtrips_and_is_refused_for_reference_effects():
+    s = EffectSpec.parse({"name": "wind", "direct": True, "accel": [1.0, 0.0, 0.0]})
+    assert s.direct and s.params == {"accel": [1.0, 0.0, 0.0]}
+    assert s.to_yaml_dict() == {"name": "wind", "direct": True, "accel": [1.0, 0.0, 0.0]}
+    assert EffectSpec.parse(s.to_yaml_dict()) == s
+    plain = EffectSpec.parse({"name": "wind"})
+    assert plain.direct is False and "direct" not in plain.to_yaml_dict()  # old configs unchanged
+    with pytest.raises(ConfigError, match="direct: expected bool"):
+        EffectSpec.parse({"name": "wind", "direct": "yes"})
+    for name in ("gravity", "support"):
+        with pytest.raises(ConfigError, match="cannot be direct"):
+            build_effect({"name": name, "direct": True})
+    es = build_effects(["gravity", {"name": "wind", "direct": True, "accel": [1.0, 0.0, 0.0]},
+                        {"name": "linear_drag", "key": "drag", "coeff": 0.5}])
+    assert es.direct_keys == ["wind"]
+    ctx = _ctx(vel=torch.randn(50, 3))
+    total, direct = es.split(ctx)
+    assert torch.equal(total, es(ctx))
+    assert torch.allclose(direct, ctx.masses[:, None] * torch.tensor([1.0, 0.0, 0.0]))
+    assert build_effects(["gravity", "wind"]).split(ctx)[1] is None
+
+
+def test_uniform_direct_wind_translates_rigidly_by_the_discrete_closed_form():
+    """Semi-implicit Euler on the root's residual: v_n = n a dt, d_n = a dt^2 n (n + 1) / 2
+    (-> 1/2 a (n dt)^2 as dt -> 0); every lower level gets a's excess over its parent's = 0,
+    so all splats move by d_n (float rounding only); the covariances do not change."""
+    torch.manual_seed(0)
+    sp = synthetic_rope(800, seed=3)
+    scene = SceneContext.table()
+    cfg = load_model_config("cpu")
+    a = torch.tensor([1.0, -0.5, 0.0])
+    cfg.effects.append(EffectSpec("wind", params={"accel": a.tolist()}, direct=True))
+    sim = _still_network(Simulator(cfg).eval())
+    n, dt = 20, scene.dt
+    with torch.no_grad():
+        s0 = sim.init_state(sp, scene)
+        last = sim.rollout(s0, [_far()] * n)[-1]
+    disp = last.means - s0.means
+    expect = a * dt * dt * n * (n + 1) / 2
+    assert torch.allclose(disp, expect.expand_as(disp), rtol=0, atol=1e-5 * float(expect.norm()))
+    cont = 0.5 * a * (n * dt) ** 2  # the continuous form differs by (n + 1) / n: 5% here
+    assert float((disp.mean(0) - cont).norm()) > 0.04 * float(cont.norm())
+    assert torch.allclose(last.covs, s0.covs, atol=1e-12)
+    # the same wind as a feature only does not move this network at all (the pathway it lacked)
+    cfg2 = load_model_config("cpu")
+    cfg2.effects.append(EffectSpec("wind", params={"accel": a.tolist()}))
+    feat = Simulator(cfg2).eval()
+    feat.load_state_dict(sim.state_dict(), strict=False)
+    with torch.no_grad():
+        f0 = feat.init_state(sp, scene)
+        assert torch.equal(feat.rollout(f0, [_far()] * 3)[-1].means, f0.means)
+
+
+def test_direct_force_on_some_splats_moves_them_relative_to_the_rest():
+    torch.manual_seed(0)
+    sp = synthetic_rope(800, seed=3)
+    scene = SceneContext.table()
+    sim = _still_network(Simulator(load_model_config("cpu")).eval())
+    sim.add_effect({"name": "gripper_slip", "direct": True, "sag": 1.0, "radius": 0.03})
+    end = sp.means[sp.means[:, 0].argmax()].clone()
+    grasp = RobotAction(end[None, :] + torch.zeros(30, 3), 0.0)  # closed on one end of the rope
+    with torch.no_grad():
+        s0 = sim.init_state(sp, scene)
+        last = sim.rollout(s0, [grasp] * 10)[-1]
+    disp = (last.means - s0.means)[:, 2]
+    near = (sp.means - end).norm(dim=-1) < 0.01
+    far = (sp.means - end).norm(dim=-1) > 0.2
+    assert float(disp[near].mean()) < -1e-3  # the held end sags under its extra load...
+    assert float(disp[far].abs().max()) < 0.1 * float(disp[near].abs().mean())  # ...the far end barely moves
+
+
+@pytest.mark.parametrize("model", ["cpu", "paper"])
+def test_zero_force_direct_effects_are_a_bitwise_noop(model):
+    """Random weights, robot pushing: adding every library candidate as a direct effect at its
+    zero initialisation gives the same rollout bit for bit (and the rest state stays put)."""
+    torch.manual_seed(4)
+    sp = synthetic_rope(600, seed=1, center=(0.0, 0.0, 0.0))
+    scene = SceneContext.table()
+    sim = Simulator(load_model_config(model)).eval()
+    cp0 = sp.means[sp.means[:, 0] > 0.15].mean(0) + 0.005 * torch.randn(30, 3)
+    push = [RobotAction(cp0 + torch.tensor([0.0, 0.003 * i, 0.002 * i]), 0.0) for i in range(6)]
+    steps = 6 if model == "cpu" else 3
+    with torch.no_grad():
+        s0 = sim.init_state(sp, scene)
+        ref = sim.rollout(s0, push[:steps])
+        rest = sim.rollout(s0, [_far()] * 3)[-1]
+    assert float((ref[-1].means - s0.means).abs().max()) > 1e-6  # not vacuous: the robot moves it
+    for name in ("wind", "linear_drag", "quadratic_drag", "table_friction", "gripper_slip", "mass_scale"):
+        sim.add_effect({"name": name, "direct": True})
+    assert len(sim.effects.direct_keys) == 6
+    with torch.no_grad():
+        s1 = sim.init_state(sp, scene)
+        got = sim.rollout(s1, push[:steps])
+        rest1 = sim.rollout(s1, [_far()] * 3)[-1]
+    for a, b in zip(ref, got):
+        assert torch.equal(a.means, b.means) and torch.equal(a.covs, b.covs) and torch.equal(a.quats, b.quats)
+    assert torch.equal(rest1.means, s1.means) and torch.equal(rest.means, rest1.means)
+
+
+def test_direct_forces_are_differentiable_and_checkpoints_keep_the_flag(tmp_path):
+    from soma_ros.core.checkpoint import load_checkpoint, save_checkpoint
+
+    torch.manual_seed(0)
+    sp = synthetic_rope(500, seed=2)
+    scene = SceneContext.table()
+    sim = _still_network(Simulator(load_model_config("cpu")).eval())
+    sim.add_effect({"name": "wind", "direct": True})
+    n, dt = 6, scene.dt
+    s0 = sim.init_state(sp, scene)
+    last = sim.rollout(s0, [_far()] * n)[-1]
+    last.means[:, 0].sum().backward()
+    g = sim.effects["wind"].accel.grad
+    # the network is inert here, so the whole gradient is the direct pathway's: N dt^2 n (n+1) / 2
+    assert g is not None and torch.allclose(g, torch.tensor([len(sp) * dt * dt * n * (n + 1) / 2, 0.0, 0.0]),
+                                            rtol=1e-4, atol=1e-4)
+    # a trainable random network: the gradient reaches the direct term too
+    sim2 = Simulator(load_model_config("cpu")).eval()
+    sim2.add_effect({"name": "table_friction", "direct": True, "mu": 0.3})
+    sim2.add_effect({"name": "wind", "direct": True, "accel": [0.5, 0.0, 0.0]})
+    s0 = sim2.init_state(sp, scene)
+    loss = sim2.rollout(s0, [_far()] * 4)[-1].means.square().sum()
+    loss.backward()
+    for k in ("wind", "table_friction"):
+        for p in sim2.effect_parameters(k):
+            assert p.grad is not None and torch.isfinite(p.grad).all() and float(p.grad.abs().sum()) > 0, k
+    # checkpoint round trip keeps the flag and the behaviour
+    with torch.no_grad():
+        sim2.effects["wind"].accel.copy_(torch.tensor([0.3, 0.1, 0.0]))
+    save_checkpoint(tmp_path / "c.pt", sim2)
+    back = load_checkpoint(tmp_path / "c.pt").eval()
+    assert back.effects.direct_keys == ["table_friction", "wind"]
+    assert [e.direct for e in back.config.effects] == [False, False, False, True, True]
+    with torch.no_grad():
+        a = sim2.rollout(sim2.init_state(sp, scene), [_far()] * 3)[-1].means
+        b = back.rollout(back.init_state(sp, scene), [_far()] * 3)[-1].means
+    assert torch.equal(a, b)

@@ -22,7 +22,11 @@ is computed by the evaluation engineer's scorer, :mod:`trainer.evaluate`):
    of where and when).
 3. **Candidate ranking**: for each candidate effect of the library (wind,
    linear/quadratic drag, table friction, gripper slip, mass scale) a copy of
-   the model gets the term (zero-initialised: nothing changes until fitted) and
+   the model gets the term as a *direct* effect (``direct`` in the config,
+   default true: its force is integrated by the simulator on top of the learned
+   dynamics as well as fed to the network, see :mod:`soma_ros.core.simulator`;
+   a network trained without the term barely responds to it as a feature
+   alone) (zero-initialised: nothing changes until fitted) and
    ONLY its parameters are fitted by Adam through the simulator on the *fit*
    episodes (3D point residual loss, full open-loop rollouts). On the *held-out*
    episodes, explained = 1 - sum residual_with / sum residual_without (per
@@ -94,6 +98,7 @@ class DiscrepancyConfig:
     alpha: float = 0.05  # one-sided: the lower bound is the alpha quantile
     min_explained: float = 0.1
     finetune_iters: int = 0  # extra Adam steps on the winner's parameters over the fit episodes
+    direct: bool = True  # candidates are added as direct effects (explicitly integrated force); False: feature only
     eval_frame_stride: int = 2
     contact_sheets: bool = True
     seed: int = 0
@@ -252,7 +257,7 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
     Returns (model, per-step losses, fitted parameter values)."""
     model = copy.deepcopy(sim)
     if key is None:
-        model.add_effect({"name": name})
+        model.add_effect({"name": name, "direct": bool(cfg.direct)})
         key = name
     for p in model.parameters():
         p.requires_grad_(False)

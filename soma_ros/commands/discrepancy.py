@@ -33,6 +33,9 @@ def register(subparsers) -> None:
     p.add_argument("--scene", default=None, metavar="DIR", help="scene bundle (default: the run's scene/)")
     p.add_argument("--candidates", default=None, metavar="LIST", help="comma-separated effect names (default: the config's)")
     p.add_argument("--fit-iters", type=int, default=None, metavar="N", help="Adam steps per candidate")
+    p.add_argument("--feature-only", action="store_true",
+                   help="add candidates as network features only (default: direct effects, their force is also "
+                        "integrated explicitly on top of the learned dynamics)")
     p.set_defaults(func=run)
 
 
@@ -48,6 +51,8 @@ def run(args: argparse.Namespace) -> int:
         over["candidates"] = [c.strip() for c in args.candidates.split(",") if c.strip()]
     if args.fit_iters is not None:
         over["fit_iters"] = args.fit_iters
+    if args.feature_only:
+        over["direct"] = False
     try:
         cfg = load_discrepancy_config(args.config, over)
         rep = run_discrepancy(Path(args.checkpoint), Path(args.data), Path(args.out), cfg,

@@ -217,18 +217,28 @@ class NormalizerConfig:
 @dataclass
 class EffectSpec:
     """One force term: registry ``name``, instance ``key`` (default: name),
-    ``trainable`` (False freezes its parameters) and its ``params``.
+    ``trainable`` (False freezes its parameters), ``direct`` and its ``params``.
+
+    ``direct`` (default False): besides entering the network as a force-per-mass
+    feature (every effect does), the term's force is integrated by the
+    simulator as an explicit acceleration on top of the learned dynamics
+    (residual physics; see :mod:`soma_ros.core.simulator`). Not allowed for
+    the reference effects (gravity, support). Written to YAML / checkpoints
+    only when True, so configs without it are unchanged.
 
     In YAML an effect is a mapping whose other keys are the params::
 
         - name: support
           tau: 0.01
+        - name: wind
+          direct: true
     """
 
     name: str
     key: Optional[str] = None
     trainable: bool = True
     params: dict = field(default_factory=dict)
+    direct: bool = False
 
     @property
     def instance_key(self) -> str:
@@ -248,13 +258,16 @@ class EffectSpec:
         name = d.pop("name")
         key = d.pop("key", None)
         trainable = d.pop("trainable", True)
+        direct = d.pop("direct", False)
         params = dict(d.pop("params", {}) or {})
         params.update(d)
         if not isinstance(name, str) or (key is not None and not isinstance(key, str)):
             raise ConfigError(f"{where}: 'name' and 'key' must be strings, got {item!r}")
         if not isinstance(trainable, bool):
             raise ConfigError(f"{where}.trainable: expected bool, got {trainable!r}")
-        return EffectSpec(name=name, key=key, trainable=trainable, params=params)
+        if not isinstance(direct, bool):
+            raise ConfigError(f"{where}.direct: expected bool, got {direct!r}")
+        return EffectSpec(name=name, key=key, trainable=trainable, params=params, direct=direct)
 
     def to_yaml_dict(self) -> dict:
         d: dict[str, Any] = {"name": self.name}
@@ -262,6 +275,8 @@ class EffectSpec:
             d["key"] = self.key
         if not self.trainable:
             d["trainable"] = False
+        if self.direct:
+            d["direct"] = True
         d.update(self.params)
         return d
 

@@ -21,6 +21,15 @@ initial state under these forces only and subtracts that response from every
 step (see :mod:`.simulator`); all other effects (robot, wind, drag) act as
 deviations from it.
 
+``direct`` (per instance, ``EffectSpec.direct``, default False): the term's
+force is *also* integrated by the simulator as an explicit acceleration on top
+of the network's (residual physics), not only fed to the network as a
+feature. A network trained without, say, wind has never learned what a wind
+feature means and barely responds to it; a direct term moves the object by
+construction (uniform wind: rigid translation 1/2 a t^2). The reference
+effects cannot be direct (their response is learned and subtracted at rest;
+integrating them too would count gravity twice): :func:`build_effect` raises.
+
 Built-in effects (parameters in brackets, * = learnable):
 
 ==================  ===========================================================
@@ -186,6 +195,11 @@ def build_effect(spec: Union[EffectSpec, str, dict], attr_dim: int = 0) -> Effec
     cls = EFFECTS.get(spec.name)
     if cls is None:
         raise ConfigError(f"unknown effect {spec.name!r}; known effects: {', '.join(known_effects())}")
+    if spec.direct and cls.in_reference:
+        raise ConfigError(
+            f"effect {spec.instance_key}: a reference effect ({spec.name}) cannot be direct: its response is "
+            "learned by the network and subtracted at rest; integrating it explicitly too would count it twice"
+        )
     params = from_dict(cls.Params, spec.params, f"effect {spec.instance_key}: ")
     eff = cls(params, attr_dim=attr_dim)
     if not spec.trainable:
@@ -244,6 +258,25 @@ class EffectSet(nn.Module):
                 raise RuntimeError(f"effect {key!r} returned shape {list(f.shape)}, expected [{ctx.num_nodes}, 3]")
             total = total + f
         return total
+
+    @property
+    def direct_keys(self) -> list[str]:
+        """Keys of the direct effects (``EffectSpec.direct``), in order."""
+        return [k for k in self.terms if self._specs[k].direct]
+
+    def split(self, ctx: EffectContext) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
+        """(total force [N, 3], force of the direct effects alone [N, 3] or None when there are
+        none), each effect evaluated once. ``total`` equals :meth:`forward` bit for bit."""
+        total = ctx.positions.new_zeros((ctx.num_nodes, 3))
+        direct = None
+        for key, eff in self.terms.items():
+            f = eff(ctx)
+            if tuple(f.shape) != (ctx.num_nodes, 3):
+                raise RuntimeError(f"effect {key!r} returned shape {list(f.shape)}, expected [{ctx.num_nodes}, 3]")
+            total = total + f
+            if self._specs[key].direct:
+                direct = f if direct is None else direct + f
+        return total, direct
 
     def per_term(self, ctx: EffectContext) -> dict[str, torch.Tensor]:
         """Force [N, 3] of every effect, by key."""

@@ -31,6 +31,31 @@ Node features: anchor acceleration (second difference of c), F/m, velocity
 relative to the anchor (v_k above), learned attributes (mean of the
 splats'); edge features: see :mod:`.graph`.
 
+Direct effects (residual physics)
+---------------------------------
+Every force enters the network as the F/m feature above; that is the only
+pathway of the learned dynamics, so a term the network was never trained with
+(wind on a model trained under gravity + support + robot) moves the object
+only as much as the network happens to respond to an unfamiliar feature. An
+effect marked ``direct`` (``EffectSpec.direct``) is *also* integrated
+explicitly: with a_k = F_direct,k / m_k the direct force per mass of node k
+(forces summed up the hierarchy as above), the root adds a_root and every
+lower simulated level adds only its excess over its anchor,
+a_k - a_parent(k), to the network's acceleration in the residual update
+
+    d_k' = d_k + dt * clamp(v_k + dt * (a_k^net + a_k^direct))
+
+(same clamps). The anchor already carries a node by its parent's motion, so
+nothing is counted twice: uniform direct wind translates the object rigidly
+(a network whose outputs do not change: d_root after n steps from rest =
+a dt^2 n (n + 1) / 2, semi-implicit Euler; -> 1/2 a (n dt)^2), and a force on
+some splats moves their clusters relative to the rest. The splat level gets
+its excess only where the network runs on it (``gnn.splat_head``); otherwise
+splats follow their fine cluster. Reference effects (gravity, support) cannot
+be direct (their response is the learned one, subtracted at rest). With no
+direct effect the step is the network-only step, bit for bit; a direct
+effect whose force is zero adds exact zeros (same positions).
+
 At rest stays at rest (structural)
 ----------------------------------
 The initial state of an episode is taken to be in static equilibrium under
@@ -570,8 +595,8 @@ class Simulator(nn.Module):
             )
         if action is not None and not isinstance(action, RobotAction):
             raise TypeError(f"step: action must be a RobotAction or None, got {type(action).__name__}")
-        f = self.forces(state, action)
-        nxt, _ = self._advance(state, action, f, state.episode.reference)
+        f, f_direct = self.effects.split(self.effect_context(state, action))
+        nxt, _ = self._advance(state, action, f, state.episode.reference, f_direct)
         return nxt
 
     forward = step
@@ -649,9 +674,12 @@ class Simulator(nn.Module):
         action: Optional[RobotAction],
         forces: torch.Tensor,
         reference: Optional[list[Optional[torch.Tensor]]],
+        direct: Optional[torch.Tensor] = None,
     ) -> tuple[SimState, list[Optional[torch.Tensor]]]:
         """Apply one step with splat forces [N0, 3]. ``reference`` None = reference pass
-        (zero update, raw outputs returned); else outputs minus reference drive the update."""
+        (zero update, raw outputs returned); else outputs minus reference drive the update.
+        ``direct`` [N0, 3]: the part of ``forces`` from direct effects, also integrated as an
+        explicit acceleration (root: mean; lower levels: excess over the parent's)."""
         h, ep, cfg = self.hierarchy, state.episode, self.config
         dyn_cfg = cfg.dynamics
         L = h.root_level
@@ -661,6 +689,11 @@ class Simulator(nn.Module):
         if tuple(forces.shape) != (n0, 3):
             raise ValueError(f"_advance: forces must be [{n0}, 3], got {list(forces.shape)}")
         f_lv = h.aggregate_sum(forces)
+        a_direct: Optional[list[torch.Tensor]] = None
+        if direct is not None:
+            if tuple(direct.shape) != (n0, 3):
+                raise ValueError(f"_advance: direct forces must be [{n0}, 3], got {list(direct.shape)}")
+            a_direct = [f / m.clamp_min(1e-12)[:, None] for f, m in zip(h.aggregate_sum(direct), ep.masses)]
         new_pos: list[Optional[torch.Tensor]] = [None] * nl
         new_carry: list[Optional[torch.Tensor]] = [None] * nl
         new_resid: list[Optional[torch.Tensor]] = [None] * nl
@@ -703,6 +736,9 @@ class Simulator(nn.Module):
             delta = torch.zeros_like(out) if reference is None else out - reference[l]
             # translation: residual velocity and offset, bounded
             acc = dyn_cfg.accel_scale * delta[:, :3]
+            if a_direct is not None:  # residual physics: own direct acceleration minus the anchor's
+                a_d = a_direct[l] if l == L else a_direct[l] - a_direct[l + 1].index_select(0, h.parents[l])
+                acc = acc + a_d
             v_new = _clamp_norm(v_rel + dt * acc, dyn_cfg.max_speed)
             d_new = state.resid[l] + dt * v_new
             if l < L:
