@@ -86,11 +86,33 @@ def test_variant_configs_differ_only_as_documented():
     nomrt = variant_train_config(b, "rope", "no_mrt")
     so = variant_train_config(b, "rope", "state_only")
     assert full.loss.momentum_weight > 0 and img.loss.momentum_weight == 0
+    # img_only = the image loss alone: none of the 3D terms full adds on top of it
+    assert full.loss.points_weight > 0 and img.loss.points_weight == 0
+    assert img.loss.depth_weight == 0 and img.loss.silhouette_weight == 0
+    assert img.loss.lam == full.loss.lam and img.loss.dssim_window == full.loss.dssim_window
     assert nomrt.schedule.stage1.epochs == 0 and nomrt.schedule.total_iters == full.schedule.total_iters
     eff = [e.name for e in so.model_config().effects]
     assert "robot" not in eff and "wind" in eff and "robot" in [e.name for e in full.model_config().effects]
     for c in (img, nomrt, so):
         assert c.data == full.data and c.scene == full.scene and c.optim == full.optim
+
+
+def test_bench_never_selects_on_the_test_split():
+    """Every learned variant validates (and so picks its kept checkpoint) on training-split
+    episodes; a config that would validate on the scored test split is refused."""
+    from trainer.bench_accuracy import _check_no_test_selection, load_bench_config
+    from soma_ros.core.config import ConfigError
+
+    for preset in ("tiny", "paper"):
+        b = load_bench_config(preset)
+        for v in ("full", "state_only", "img_only", "no_mrt"):
+            c = variant_train_config(b, "rope", v)
+            assert c.data.val_split is None and c.data.val_holdout >= 1 and c.run.keep == "best"
+            _check_no_test_selection(c, v)
+    bad = variant_train_config(_bench(), "rope", "full")
+    bad.data.val_split = "test"
+    with pytest.raises(ConfigError, match="test episodes"):
+        _check_no_test_selection(bad, "full")
 
 
 def test_static_numbers_match_an_independent_computation(bench_run):

@@ -5,9 +5,10 @@ with SIGKILL after its second checkpoint and started again with the same command
 
 * (c) the second process resumes from the last checkpoint: iteration counter,
   weights (checksum) and log carry on;
-* (a) the finished run's validation loss (held-out episodes, full-rate open-loop
-  rollouts) is well below the untrained model's, and a rollout of the trained model
-  moves with the gripper: the splats the gripper closes on rise with it;
+* (a) the finished run's validation loss (a training-split episode no gradient step used,
+  full-rate open-loop rollouts) is well below the untrained model's, and a rollout of the
+  kept (best-by-validation) checkpoint on the held-out test episodes moves with the
+  gripper: the splats the gripper closes on rise with it;
 * (b) a 2-process `torchrun` run on CPU (DDP over gloo) trains, keeps the ranks'
   weights identical, and writes the same checkpoint format.
 
@@ -43,7 +44,8 @@ def _env() -> dict:
 
 @pytest.fixture(scope="module")
 def lift_dataset(tmp_path_factory) -> Path:
-    """8 tiny grasp-and-lift rope episodes (6 train / 2 test), 40 frames each."""
+    """8 tiny grasp-and-lift rope episodes (6 train / 2 test), 40 frames each; the tiny config
+    validates on the last training episode (5 stepped on, 1 validation)."""
     from soma_ros.world import generate_dataset, load_world_config
 
     out = tmp_path_factory.mktemp("trainer") / "rope_lift"
@@ -116,8 +118,31 @@ def test_resume_after_kill_continues_from_the_last_checkpoint(trained_run):
     assert val_its == sorted(set(val_its)) and val_its[0] == 0 and val_its[-1] == s["total_iterations"]
     from soma_ros.core.checkpoint import read_checkpoint
 
-    extra = read_checkpoint(run / "checkpoint.pt")["extra"]
-    assert extra["iteration"] == s["total_iterations"] and extra["complete"] and extra["resumed_from"] == [k]
+    last = read_checkpoint(run / "checkpoint_last.pt")["extra"]
+    assert last["iteration"] == s["total_iterations"] and last["complete"] and last["resumed_from"] == [k]
+    # checkpoint.pt keeps the weights of the best validation (run.keep: best), also across the resume
+    kept = read_checkpoint(run / "checkpoint.pt")["extra"]
+    assert kept["kept"] == "best" and kept["complete"] and kept["run_iteration"] == s["total_iterations"]
+    best = min(s["val_history"], key=lambda h: h["val_loss"])
+    assert kept["iteration"] == s["best_iteration"] == best["iteration"]
+    assert kept["val_loss"] == pytest.approx(best["val_loss"]) == pytest.approx(s["best_val_loss"])
+
+
+def test_validation_episodes_are_training_split_episodes(trained_run, lift_dataset):
+    """Validation (which picks the kept checkpoint) uses training-split episodes that take no
+    gradient step; the held-out test episodes are neither trained on nor used for selection."""
+    from trainer.dataset import load_dataset
+
+    run = trained_run["run"]
+    s = trained_run["summary"]
+    test_names = {r.name for r in load_dataset(lift_dataset, "test")}
+    train_names = {r.name for r in load_dataset(lift_dataset, "train")}
+    assert s["val_episodes"] and set(s["val_episodes"]) <= train_names
+    assert not set(s["val_episodes"]) & set(s["train_episodes"])
+    assert not (set(s["val_episodes"]) | set(s["train_episodes"])) & test_names
+    with open(run / "log.csv", newline="") as f:
+        stepped = {r["episode"] for r in csv.DictReader(f) if r["kind"] == "train"}
+    assert stepped <= set(s["train_episodes"])
 
 
 # --------------------------------------------------------------------------- (a) learning
@@ -212,7 +237,7 @@ def test_torchrun_two_processes_on_cpu(trained_run, lift_dataset, tmp_path):
     assert set(multi["state_dict"]) == set(single["state_dict"])
     assert all(multi["state_dict"][k].shape == single["state_dict"][k].shape for k in single["state_dict"])
     assert multi["model_config"] == single["model_config"]
-    assert multi["extra"]["world_size"] == 2 and multi["extra"]["iteration"] == 6
+    assert multi["extra"]["world_size"] == 2 and multi["extra"]["run_iteration"] == 6
     sim = load_checkpoint(run2 / "checkpoint.pt")
     assert sim.hierarchy.sizes == load_checkpoint(trained_run["run"] / "checkpoint.pt").hierarchy.sizes
 

@@ -176,7 +176,11 @@ def variant_train_config(bench: BenchConfig, obj: str, variant: str) -> TrainCon
     """The train config of a learned variant for one object.
 
     * ``full``: ``bench.train.config`` with ``bench.train.overrides``.
-    * ``img_only``: + ``loss.momentum_weight = 0`` (no regulariser).
+    * ``img_only``: the paper's "Img-only" (raw image supervision, without the blended
+      supervision): the object-masked L2 + D-SSIM image loss is the only term --
+      ``loss.momentum_weight = 0`` (no regulariser) and the 3D terms the base config adds
+      (``points_weight``, ``depth_weight``, ``silhouette_weight``) = 0. Keeping the 3D point
+      term would make it ``full`` minus a regulariser that is ~0 anyway, not an image-only model.
     * ``no_mrt``: + no multi-resolution schedule: stage 1 off, all its epochs at the frame rate
       in stage 2 (same number of iterations).
     * ``state_only``: + the model's effects without ``robot``, plus ``wind`` (a learnable constant
@@ -189,7 +193,8 @@ def variant_train_config(bench: BenchConfig, obj: str, variant: str) -> TrainCon
     if variant == "full":
         return cfg
     if variant == "img_only":
-        over: dict[str, Any] = {"loss": {"momentum_weight": 0.0}}
+        over: dict[str, Any] = {"loss": {"momentum_weight": 0.0, "points_weight": 0.0, "depth_weight": 0.0,
+                                         "silhouette_weight": 0.0}}
     elif variant == "no_mrt":
         s = cfg.schedule
         over = {"schedule": {"stage1": {"epochs": 0}, "stage2": {"epochs": s.stage1.epochs + s.stage2.epochs}}}
@@ -199,6 +204,16 @@ def variant_train_config(bench: BenchConfig, obj: str, variant: str) -> TrainCon
             effects.append({"name": "wind"})
         over = {"model_overrides": _merge(cfg.model_overrides, {"effects": effects})}
     return load_train_config(bench.train.config, overrides=_merge(base, over))
+
+
+def _check_no_test_selection(cfg: TrainConfig, what: str) -> None:
+    """The benchmark scores the manifest's ``test`` split: no run may train or select its checkpoint on it."""
+    d = cfg.data
+    if d.train_split == "test" or (d.val_split == "test" and cfg.run.keep == "best") or \
+            (d.val_split is not None and d.val_split == d.train_split):
+        raise ConfigError(f"{what}: data.train_split={d.train_split!r}, data.val_split={d.val_split!r}, "
+                          f"run.keep={cfg.run.keep!r}: the held-out test episodes would train or select the model; "
+                          "use data.val_split: null (validation episodes held out of the training split)")
 
 
 # --------------------------------------------------------------------------- steps
@@ -253,7 +268,10 @@ def _train_variant(cfg: TrainConfig, obj: str, variant: str, data: Path, run: Pa
     log(f"[{obj}] {variant}: training ({cfg.schedule.total_iters} iterations) into {run}")
     summary = train(cfg, data, run, scene_dir=scene, log=lambda s: log(f"[{obj}] {variant}: {s}"))
     return {"reused": False, "seconds": round(time.time() - t0, 1), "val_loss_untrained": summary.get("val_loss_untrained"),
-            "val_loss": summary.get("val_loss"), "iterations": summary.get("iterations")}
+            "val_loss": summary.get("val_loss"), "iterations": summary.get("iterations"),
+            "best_val_loss": summary.get("best_val_loss"), "best_iteration": summary.get("best_iteration"),
+            "kept": summary.get("kept"), "train_episodes": summary.get("train_episodes"),
+            "val_episodes": summary.get("val_episodes")}
 
 
 def _copy_context(src_run: Path, dst: Path) -> None:
@@ -333,12 +351,21 @@ def table_markdown(table: dict, bench: BenchConfig, meta: dict) -> str:
         lines.append("")
         steps = om.get("steps", {})
         trained = []
+        val_eps = None
         for v in TRAINED_VARIANTS:
             st = steps.get(v, {})
             if st.get("val_loss") is not None and st.get("val_loss_untrained") is not None:
-                trained.append(f"{v} {st['val_loss_untrained']:.4f} -> {st['val_loss']:.4f} ({st.get('iterations')} it)")
+                txt = f"{v} {st['val_loss_untrained']:.4f} -> {st['val_loss']:.4f} ({st.get('iterations')} it)"
+                if st.get("kept") == "best" and st.get("best_iteration") is not None:
+                    txt += f", kept it {st['best_iteration']} ({st['best_val_loss']:.4f})"
+                trained.append(txt)
+                val_eps = val_eps or st.get("val_episodes")
         if trained:
-            lines.append("Training (validation image loss of `soma train`, untrained -> trained): " + "; ".join(trained) + ".")
+            lines.append("Training (validation loss of `soma train` -- each variant's own objective without the "
+                         "regulariser, so not comparable across variants --, untrained -> last; the checkpoint kept "
+                         "and scored is the best by validation" + (f", on training-split episodes {', '.join(val_eps)}"
+                                                                  " that no gradient step used" if val_eps else "")
+                         + "): " + "; ".join(trained) + ".")
             lines.append("")
         sm = steps.get("spring_mass", {})
         if sm.get("parameters"):
@@ -417,6 +444,8 @@ def run_bench(bench: BenchConfig, out: Path, objects: Optional[Sequence[str]] = 
     # cannot give the variants (or the objects) different settings
     train_cfgs = {(o, v): variant_train_config(bench, o, v) for o in objects for v in bench.variants
                   if v in TRAINED_VARIANTS}
+    for (o, v), c in train_cfgs.items():
+        _check_no_test_selection(c, f"{o}/{v}")
     for obj in objects:
         t_obj = time.time()
         steps: dict = {}

@@ -77,7 +77,9 @@ class DataConfig:
     factor (the paper trains dynamics at the recorded resolution: 1.0).
     ``max_frames``: use only the first frames of each episode (None = all).
     ``train_split`` / ``val_split``: manifest splits; ``val_split: null`` holds out
-    the last ``val_holdout`` training episodes instead. ``tasks``: keep only
+    the last ``val_holdout`` training episodes instead (never stepped on; the validation
+    loss picks the kept checkpoint, ``run.keep``, so it must not be the test split when the
+    test split is what the model is scored on). ``tasks``: keep only
     episodes of these tasks (None = all). ``max_*_episodes`` cap the lists.
     """
 
@@ -160,7 +162,10 @@ class SceneConfig:
 class LossConfig:
     """L = mean over supervised frames and cameras of [lam * masked L2 + (1 - lam) * D-SSIM]
     on object pixels (robot-occluded pixels excluded) + ``momentum_weight`` * L_mom
-    + ``depth_weight`` * masked L1 depth (metres; 0 = the paper's image-only loss).
+    + ``depth_weight`` * masked L1 depth (metres; 0 = the paper's image-only loss)
+    + ``silhouette_weight`` * rendered alpha vs object mask off the object
+    + ``points_weight`` * mean distance observed object point -> nearest splat (m)
+    (see :func:`trainer.train.frame_terms`).
 
     ``camera_reduce``: "camera" = each camera's image loss on its own object pixels,
     then the mean over cameras (the paper sums L_img over images; a camera where the
@@ -285,17 +290,26 @@ class OptimConfig:
 class RunConfig:
     """Cadence: checkpoint every ``checkpoint_every`` iterations (and at each epoch end),
     validate every ``val_every_epochs`` epochs on at most ``val_episodes`` episodes,
-    rendering every ``val_frame_stride``-th frame of a full-rate open-loop rollout."""
+    rendering every ``val_frame_stride``-th frame of a full-rate open-loop rollout.
+
+    ``keep``: which weights the run's ``checkpoint.pt`` holds: ``best`` = those with the
+    lowest validation loss so far (the untrained model's included), ``last`` = the latest.
+    The latest weights are always in ``checkpoint_last.pt`` and ``train_state.pt`` (resume).
+    Selecting on validation is model selection: the validation episodes must not be the
+    held-out test episodes (see ``data.val_split``)."""
 
     checkpoint_every: int = 50
     val_every_epochs: int = 1
     val_episodes: int = 4
     val_frame_stride: int = 2
+    keep: str = "best"
     progress: bool = True
 
     def validate(self, where: str = "run") -> None:
         if self.checkpoint_every < 1 or self.val_every_epochs < 1 or self.val_episodes < 1 or self.val_frame_stride < 1:
             raise ConfigError(f"{where}: checkpoint_every, val_every_epochs, val_episodes, val_frame_stride must be >= 1")
+        if self.keep not in ("best", "last"):
+            raise ConfigError(f"{where}.keep: one of best, last; got {self.keep!r}")
 
 
 @dataclass
