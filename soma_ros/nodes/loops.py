@@ -44,6 +44,10 @@ class FixedRateLoop:
         self._thread.start()
         return self
 
+    def request_stop(self) -> None:
+        """Ask the loop to end after its current call, without waiting."""
+        self._stop.set()
+
     def stop(self, timeout: float = 5.0) -> bool:
         """Ask the loop to end and wait for it; returns True if the thread ended."""
         self._stop.set()

@@ -194,8 +194,10 @@ class SomaSimNode(Node):
     def stop(self) -> None:
         """Stop the threads; nothing is published after this returns."""
         for loop in self.loops:
-            if not loop.stop(timeout=10.0):
-                self.get_logger().warn(f"thread {loop.name} did not stop within 10 s")
+            loop.request_stop()
+        for loop in self.loops:
+            if not loop.stop(timeout=5.0):
+                self.get_logger().warn(f"thread {loop.name} did not stop within 5 s")
 
     def _set_frame(self, vec: Optional[np.ndarray], stamp_ns: Optional[int] = None) -> None:
         state, template, steps = self.live.snapshot()
@@ -341,15 +343,24 @@ class SomaSimNode(Node):
 
 
 def main(argv: Optional[list[str]] = None) -> int:
+    """Spin until SIGINT/SIGTERM; then stop the worker threads while the context is still
+    valid (no publish on a dead context), destroy the node and shut down, in that order."""
+    import signal
+
+    from rclpy.signals import SignalHandlerOptions
+
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    rclpy.init(args=argv if argv is not None else sys.argv)
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    rclpy.init(args=argv if argv is not None else sys.argv, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
         node = SomaSimNode()
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         node.start()
-        executor.spin()
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (FileNotFoundError, ValueError) as exc:
@@ -361,6 +372,8 @@ def main(argv: Optional[list[str]] = None) -> int:
             node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     return 0
 
 
