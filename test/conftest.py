@@ -89,3 +89,19 @@ def untrained_run(tmp_path_factory):
 def sim_node_args(checkpoint, scene, *extra: str) -> list:
     """--ros-args for soma_sim_node."""
     return ["--ros-args", "-p", f"checkpoint:={checkpoint}", "-p", f"scene:={scene}", *extra]
+
+
+def train_tiny_run(data: Path, run: Path, episodes: int, frames: int, seed: int = 3) -> None:
+    """A tiny rope dataset (`episodes` x `frames`) and a barely trained `tiny` model on it
+    (2 iterations: the mechanics of what consumes a run, not its accuracy)."""
+    from soma_ros.world import generate_dataset, load_world_config
+    from trainer.config import load_train_config
+    from trainer.train import train
+
+    generate_dataset(load_world_config(), "rope", "tiny", data, episodes=episodes, seed=seed, frames=frames, progress=False)
+    cfg = load_train_config("tiny", {
+        "scene": {"photometric_iters": 3},
+        "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 1, "stride": 2, "length_start": 2},
+                     "stage2": {"epochs": 1, "window": 3}},
+        "run": {"val_episodes": 1, "val_frame_stride": 3}})
+    train(cfg, data, run, log=lambda *a, **k: None)

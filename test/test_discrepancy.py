@@ -143,19 +143,11 @@ def test_candidates_are_fitted_as_direct_effects_and_recover_a_hidden_wind():
 @pytest.fixture(scope="module")
 def clean_run(tmp_path_factory):
     """A barely trained model on 4 tiny effect-free episodes (the mechanics, not the accuracy)."""
-    from soma_ros.world import generate_dataset, load_world_config
-    from trainer.config import load_train_config
-    from trainer.train import train
+    from conftest import train_tiny_run
 
     root = tmp_path_factory.mktemp("disc")
     data = root / "clean"
-    generate_dataset(load_world_config(), "rope", "tiny", data, episodes=4, seed=3, frames=12, progress=False)
-    cfg = load_train_config("tiny", {
-        "scene": {"photometric_iters": 3},
-        "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 1, "stride": 2, "length_start": 2},
-                     "stage2": {"epochs": 1, "window": 3}},
-        "run": {"val_episodes": 1, "val_frame_stride": 3}})
-    train(cfg, data, root / "run", log=lambda *a, **k: None)
+    train_tiny_run(data, root / "run", episodes=4, frames=12)
     return root, data
 
 

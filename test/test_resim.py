@@ -33,19 +33,11 @@ SIM_TOPIC_KINDS = ("image_raw", "depth", "camera_info")
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     """(dataset, run): 3 tiny rope episodes of 10 frames and a `soma train --config tiny` run of 2 iterations."""
-    from soma_ros.world import generate_dataset, load_world_config
-    from trainer.config import load_train_config
-    from trainer.train import train
+    from conftest import train_tiny_run
 
     root = tmp_path_factory.mktemp("resim")
     data = root / "data"
-    generate_dataset(load_world_config(), "rope", "tiny", data, episodes=3, seed=3, frames=10, progress=False)
-    cfg = load_train_config("tiny", {
-        "scene": {"photometric_iters": 3},
-        "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 1, "stride": 2, "length_start": 2},
-                     "stage2": {"epochs": 1, "window": 3}},
-        "run": {"val_episodes": 1, "val_frame_stride": 3}})
-    train(cfg, data, root / "run", log=lambda *a, **k: None)
+    train_tiny_run(data, root / "run", episodes=3, frames=10)
     man = json.loads((data / "manifest.json").read_text())
     assert {e["name"]: e["split"] for e in man["episodes"]}[TEST_EPISODE] == "test"
     return data, root / "run"
