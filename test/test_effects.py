@@ -128,6 +128,64 @@ def test_robot_force_is_local_smooth_and_learnable():
         assert p.grad is not None and p.grad.abs().max() > 0, n
 
 
+def _rotz(a: float) -> torch.Tensor:
+    c, s = torch.cos(torch.tensor(a)), torch.sin(torch.tensor(a))
+    return torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_robot_coupling_form_is_physical_invariant_and_learnable():
+    torch.manual_seed(0)
+    spec = {"name": "robot", "radius": 0.05, "hidden": 16, "form": "coupling", "prior_grip": 0.25}
+    eff = build_effect(spec, attr_dim=5)
+    cp = torch.tensor([[0.05, 0.05, 0.05]])
+    # a motionless control point and splats at rest: only the push/pull along u (finger -> splat)
+    ctx = _ctx(cp=cp, grip=0.0)
+    f = eff(ctx).detach()
+    u = ctx.positions - cp
+    inside = u.norm(dim=-1) < 0.05
+    assert bool(inside.sum() >= 3) and torch.count_nonzero(f[~inside]) == 0
+    cross = torch.linalg.cross(f[inside], u[inside])
+    assert float(cross.norm(dim=-1).max()) < 1e-6 * max(1e-12, float(f.norm(dim=-1).max())) + 1e-12
+    # with the push head at zero, a control point moving at v drags the splats at rest: a = w k v / dt
+    with torch.no_grad():
+        eff.coef_mlp[-1].weight[1].zero_()
+        eff.coef_mlp[-1].bias[1].zero_()
+        eff.coef_mlp[-1].weight[0].zero_()  # k = prior_grip everywhere
+    v = torch.tensor([[0.0, 0.0, 0.3]])
+    ctx = _ctx(cp=cp, cpv=v, grip=0.0)
+    a = eff(ctx).detach() / ctx.masses[:, None]
+    d = (ctx.positions - cp).norm(dim=-1)
+    w = (1 - (d / 0.05) ** 2).clamp_min(0) ** 2
+    expect = w[:, None] * 0.25 * v / (1 / 30)
+    assert torch.allclose(a, expect, atol=1e-5)
+    # a splat already moving with the control point feels nothing from it (no preferred world direction)
+    ctx = _ctx(cp=cp, cpv=v, vel=v.expand(50, 3).clone(), grip=0.0)
+    assert float(eff(ctx).detach().abs().max()) < 1e-7
+    # rotation invariance: rotating the scene rotates the force (fresh, untrained weights)
+    torch.manual_seed(1)
+    eff = build_effect(spec, attr_dim=5)
+    g = torch.Generator().manual_seed(3)
+    vel = torch.randn(50, 3, generator=g) * 0.1
+    cpv = torch.tensor([[0.1, -0.2, 0.05]])
+    c1 = _ctx(cp=cp, cpv=cpv, vel=vel)
+    R = _rotz(0.7) @ torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    c2 = _ctx(cp=cp @ R.T, cpv=cpv @ R.T, vel=vel @ R.T)
+    c2.positions = c1.positions @ R.T
+    assert torch.allclose(eff(c2), eff(c1) @ R.T, atol=1e-7)
+    # bounded: per splat at most (|dv| / dt + accel_scale) x mass, however many control points
+    many = _ctx(cp=torch.rand(30, 3) * 0.1, cpv=torch.ones(30, 3) * 0.2, grip=0.0)
+    amax = (eff(many) / many.masses[:, None]).norm(dim=-1).max()
+    assert float(amax) <= 0.2 * 3 ** 0.5 * 30 + 9.81 + 1e-4
+    # gradients reach every parameter; bad parameters fail clearly
+    eff(c1).square().sum().backward()
+    for n, p in eff.named_parameters():
+        assert p.grad is not None and p.grad.abs().max() > 0, n
+    with pytest.raises(ConfigError, match="form"):
+        build_effect({"name": "robot", "form": "spring"})
+    with pytest.raises(ConfigError, match="prior_grip"):
+        build_effect({"name": "robot", "form": "coupling", "prior_grip": 1.0})
+
+
 def test_trainable_false_freezes_and_custom_effects_register():
     eff = build_effect({"name": "wind", "trainable": False, "accel": [1.0, 0.0, 0.0]})
     assert not any(p.requires_grad for p in eff.parameters())

@@ -50,7 +50,12 @@ robot               graph module: edges from each robot control point to its
                     velocity, splat attributes; messages (smoothly cut off at the
                     radius) summed per splat and decoded to a force. Exactly zero
                     for splats with no control point in range [radius,
-                    max_neighbors, hidden*, layers]
+                    max_neighbors, hidden*, layers]. ``form: coupling``: the
+                    same edges with a physical structure instead (velocity
+                    coupling k (v_cp - v) / dt, k in (0, 1), plus a push/pull
+                    along finger -> splat; only rotation-invariant scalar
+                    coefficients learned; :class:`RobotForce`) [prior_grip,
+                    prior_open]
 wind                constant acceleration field m a, a learnable, zero-init [accel*]
 linear_drag         -b m v [coeff*]
 quadratic_drag      -c m |v| v [coeff*]
@@ -60,6 +65,7 @@ quadratic_drag      -c m |v| v [coeff*]
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Callable, ClassVar, Iterable, Optional, Union
 
@@ -344,9 +350,33 @@ class Support(Effect):
 
 @register_effect("robot")
 class RobotForce(Effect):
-    """Robot-induced force: a small message-passing module from control points to splats."""
+    """Robot-induced force from the control points to the splats in reach.
 
-    FEATURES = 11  # + attr_dim
+    ``form: mlp`` (default): a small message-passing module; edge messages from free
+    features (relative position and velocities in the world frame, gripper state) decoded
+    to a force. It can represent any force, including one with no physical cause (a
+    closed, motionless gripper pushing the object up).
+
+    ``form: coupling``: the same edges, but the force has a physical structure; only
+    scalar coefficients are learned, from rotation-invariant edge features
+    (distance / radius, gripper state, relative speed, approach speed, splat attributes):
+
+        a_i = sum_j w_ij [ k_ij (v_j - v_i) / dt + b_ij u_ij ] / max(1, sum_j w_ij)
+
+    with w_ij the smooth cutoff (1 at the control point, 0 at the radius), k_ij in (0, 1)
+    the fraction of the velocity difference to control point j removed per step (grip,
+    friction, pushing: dissipative, unconditionally stable under the simulator's
+    semi-implicit step), b_ij in (-accel_scale, accel_scale) m/s^2 a push (> 0) or pull
+    along u_ij, the unit vector from control point j to splat i. So a control point at rest
+    relative to a splat exerts no force but b u, which points from the finger to the
+    splat: a motionless closed gripper cannot lift the object, and the force has no
+    preferred world direction. The learned logit of k is added to a prior that goes from
+    logit(``prior_open``) with the gripper open to logit(``prior_grip``) closed.
+    """
+
+    FEATURES = 11  # + attr_dim (form mlp)
+    COUPLING_FEATURES = 4  # + attr_dim (form coupling)
+    FORMS = ("mlp", "coupling")
 
     @dataclass
     class Params:
@@ -356,6 +386,9 @@ class RobotForce(Effect):
         layers: int = 1
         accel_scale: float = 9.81
         velocity_scale: float = 1.0
+        form: str = "mlp"
+        prior_grip: float = 0.25  # form coupling: initial k with the gripper closed (fraction of dv per step)
+        prior_open: Optional[float] = None  # form coupling: initial k with the gripper open (None: prior_grip)
 
     def __init__(self, params, *, attr_dim: int = 0) -> None:
         super().__init__(params, attr_dim=attr_dim)
@@ -363,7 +396,27 @@ class RobotForce(Effect):
             raise ConfigError(
                 f"effect robot: radius > 0, max_neighbors >= 0, hidden >= 1, layers >= 0 required, got {params}"
             )
+        if params.form not in self.FORMS:
+            raise ConfigError(f"effect robot: form must be one of {', '.join(self.FORMS)}, got {params.form!r}")
+        for name in ("prior_grip", "prior_open"):
+            v = getattr(params, name)
+            if v is not None and not 0.0 < v < 1.0:
+                raise ConfigError(f"effect robot: {name} must be in (0, 1), got {v}")
         h = params.hidden
+        if params.form == "coupling":
+            layers = [nn.Linear(self.COUPLING_FEATURES + attr_dim, h), nn.SiLU()]
+            for _ in range(params.layers):
+                layers += [nn.Linear(h, h), nn.SiLU()]
+            head = nn.Linear(h, 2)
+            with torch.no_grad():  # start near the prior: k = prior (closed..open by the gripper state), b = 0
+                head.weight.mul_(0.1)
+                head.bias.zero_()
+            self.coef_mlp = nn.Sequential(*layers, head)
+            logit = lambda q: math.log(q / (1.0 - q))  # noqa: E731
+            k_open = params.prior_grip if params.prior_open is None else params.prior_open
+            self._logit_closed = logit(params.prior_grip)
+            self._logit_open = logit(k_open)
+            return
         fin = self.FEATURES + attr_dim
         edge = [nn.Linear(fin, h), nn.SiLU()]
         for _ in range(params.layers):
@@ -408,6 +461,8 @@ class RobotForce(Effect):
         rel = ctx.positions[i] - ctx.control_points[j]  # [E, 3], differentiable
         dist = torch.sqrt((rel * rel).sum(-1, keepdim=True) + 1e-18)
         cpv = ctx.control_velocities[j]
+        if p.form == "coupling":
+            return self._coupling(ctx, i, j, rel, dist, cpv, out)
         feats = [
             rel / p.radius,
             dist / p.radius,
@@ -428,6 +483,33 @@ class RobotForce(Effect):
         acc = self.node_mlp(agg) - self.node_mlp(agg.new_zeros((1, agg.shape[1])))  # 0 when no message
         force = (ctx.masses[active] * p.accel_scale)[:, None] * acc
         return out.index_copy(0, active, force)
+
+
+    def _coupling(self, ctx: EffectContext, i: torch.Tensor, j: torch.Tensor, rel: torch.Tensor,
+                  dist: torch.Tensor, cpv: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+        """Form ``coupling`` (class docstring): [E] edges -> force [N, 3] on the splats."""
+        p = self.params
+        u = rel / dist  # [E, 3] unit, control point -> splat
+        dv = cpv - ctx.velocities[i]  # [E, 3] velocity of the control point relative to the splat
+        feats = [
+            dist / p.radius,
+            ctx.gripper.reshape(1, 1).expand(rel.shape[0], 1).to(rel.dtype),
+            torch.sqrt((dv * dv).sum(-1, keepdim=True) + 1e-18) / p.velocity_scale,
+            -(u * dv).sum(-1, keepdim=True) / p.velocity_scale,  # > 0: the control point approaches
+        ]
+        if self.attr_dim:
+            feats.append(ctx.attrs[i])
+        coef = self.coef_mlp(torch.cat(feats, dim=-1))  # [E, 2]
+        g = feats[1]  # [E, 1] gripper state: 1 open, 0 closed
+        prior = self._logit_open * g + self._logit_closed * (1.0 - g)
+        k = torch.sigmoid(coef[:, :1] + prior)
+        b = p.accel_scale * torch.tanh(coef[:, 1:])
+        w = (1.0 - (dist / p.radius) ** 2).clamp_min(0.0) ** 2  # [E, 1] smooth cutoff
+        acc_e = w * (k * dv / float(ctx.dt) + b * u)  # [E, 3] m/s^2
+        acc = out.index_add(0, i, acc_e)
+        wsum = out.new_zeros((out.shape[0],)).index_add_(0, i, w[:, 0])
+        acc = acc / wsum.clamp_min(1.0)[:, None]
+        return ctx.masses[:, None] * acc
 
 
 @register_effect("wind")
