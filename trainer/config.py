@@ -162,7 +162,11 @@ class SceneConfig:
 class LossConfig:
     """L = mean over supervised frames and cameras of [lam * masked L2 + (1 - lam) * D-SSIM]
     on object pixels (robot-occluded pixels excluded) + ``momentum_weight`` * L_mom
-    + ``depth_weight`` * masked L1 depth (metres; 0 = the paper's image-only loss)
+    + ``depth_weight`` * masked L1 depth (metres; 0 = the paper's image-only loss) on
+    ``depth_region``: "object" = measured object pixels only; "scored" = the evaluation's
+    rule (:func:`trainer.evaluate_metrics.complete_depth_maps`): both maps completed with the
+    table-plane depth, scored on object pixels or where the prediction renders (alpha > 0.5),
+    robot pixels excluded -- so splats rendered where the camera sees the table cost too
     + ``silhouette_weight`` * rendered alpha vs object mask off the object
     + ``points_weight`` * mean distance observed object point -> nearest splat (m)
     (see :func:`trainer.train.frame_terms`).
@@ -184,6 +188,7 @@ class LossConfig:
     silhouette_weight: float = 0.0
     momentum_weight: float = 1.0
     depth_weight: float = 0.0
+    depth_region: str = "object"
     points_weight: float = 0.0
     points_max: int = 1000
 
@@ -196,6 +201,8 @@ class LossConfig:
             raise ConfigError(f"{where}.dssim_window: must be an odd number >= 1, got {self.dssim_window}")
         if self.dssim_reduce not in ("image", "mask"):
             raise ConfigError(f"{where}.dssim_reduce: one of image, mask; got {self.dssim_reduce!r}")
+        if self.depth_region not in ("object", "scored"):
+            raise ConfigError(f"{where}.depth_region: one of object, scored; got {self.depth_region!r}")
         if self.camera_reduce not in ("camera", "pixel"):
             raise ConfigError(f"{where}.camera_reduce: one of camera, pixel; got {self.camera_reduce!r}")
         if min(self.momentum_weight, self.depth_weight, self.silhouette_weight, self.points_weight) < 0:

@@ -65,6 +65,7 @@ from soma_ros.core.splats import Splats
 
 from .config import TrainConfig
 from .dataset import EpisodeData, EpisodeRef, load_dataset, prepare_episode
+from .evaluate_metrics import complete_depth_maps, table_depth
 from .scene_setup import align_splats, setup_scene
 
 __all__ = [
@@ -315,7 +316,8 @@ LOSS_TERMS = ("img", "silhouette", "depth", "points", "momentum")
 
 
 def frame_terms(sim_state: SimState, colors: torch.Tensor, opacities: torch.Tensor, ep: EpisodeData, t: int,
-                cfg: TrainConfig, device, points: Optional[torch.Tensor] = None) -> dict[str, torch.Tensor]:
+                cfg: TrainConfig, device, points: Optional[torch.Tensor] = None,
+                plane: Optional[tuple[torch.Tensor, float]] = None) -> dict[str, torch.Tensor]:
     """Loss terms (scalars) of one predicted state against frame t in all cameras:
 
     * ``img``: the paper's lam masked-L2 + (1 - lam) D-SSIM on object pixels (robot pixels are
@@ -323,7 +325,9 @@ def frame_terms(sim_state: SimState, colors: torch.Tensor, opacities: torch.Tens
     * ``silhouette`` (if weighted): sum over non-robot pixels of (alpha - object mask)^2 divided
       by the object's pixel count, per camera: penalises rendering the object where the camera
       sees background (the object-masked ``img`` term cannot see that);
-    * ``depth`` (if weighted): mean |rendered - recorded depth| (m) on object pixels;
+    * ``depth`` (if weighted): mean |rendered - recorded depth| (m) on object pixels
+      (``loss.depth_region: object``) or on the evaluation's scored region with both maps
+      completed by the table depth (``scored``; needs ``plane`` = (table normal [3], offset));
     * ``points`` (if weighted): mean distance (m) from each observed object point of the frame
       (``points`` [M, 3], the frame's fused masked depth) to the nearest predicted splat centre:
       only what the cameras see is constrained, so occluded parts stay free.
@@ -348,8 +352,17 @@ def frame_terms(sim_state: SimState, colors: torch.Tensor, opacities: torch.Tens
         terms["silhouette"] = ((keep * (out.alpha - m) ** 2).sum(dim=(1, 2)) / m.sum(dim=(1, 2)).clamp_min(1.0)).mean()
     if lc.depth_weight > 0:
         gd = ep.depth[t].to(device=device, dtype=out.depth.dtype)
-        m = (mask & (gd > 0)).to(out.depth.dtype)
-        err = m * (out.depth - gd).abs()
+        if lc.depth_region == "scored":
+            if plane is None:
+                raise ValueError("frame_terms: loss.depth_region 'scored' needs the table plane")
+            table = table_depth(cams, plane[0], float(plane[1])).to(device=device)
+            pd, gdc, region = complete_depth_maps(out.depth, out.alpha, gd, ep.object_mask[t].to(device),
+                                                  ep.robot_mask[t].to(device), table)
+            m = region.to(pd.dtype)
+            err = m * (pd - gdc).abs()
+        else:
+            m = (mask & (gd > 0)).to(out.depth.dtype)
+            err = m * (out.depth - gd).abs()
         if lc.camera_reduce == "camera":
             terms["depth"] = (err.sum(dim=(1, 2)) / m.sum(dim=(1, 2)).clamp_min(1.0)).mean()
         else:
@@ -361,6 +374,12 @@ def frame_terms(sim_state: SimState, colors: torch.Tensor, opacities: torch.Tens
             d = torch.cdist(points.to(device=device, dtype=sim_state.means.dtype), sim_state.means)
             terms["points"] = d.min(dim=1).values.mean()
     return terms
+
+
+def _plane(bundle: SceneBundle) -> tuple[torch.Tensor, float]:
+    """(table normal [3], offset) of the scene bundle's table plane."""
+    sc = bundle.scene_context()
+    return torch.as_tensor(sc.plane_normal).reshape(3), float(sc.plane_offset)
 
 
 def observed_points(ep: EpisodeData, t: int, max_points: int) -> torch.Tensor:
@@ -386,6 +405,7 @@ class RolloutLoss(nn.Module):
         self.sim = sim
         self.cfg = cfg
         self.bundle = bundle
+        self.plane = _plane(bundle)
 
     def forward(self, ep: EpisodeData, init: Splats, plan: RolloutPlan) -> tuple[torch.Tensor, dict]:
         sim, cfg = self.sim, self.cfg
@@ -408,7 +428,7 @@ class RolloutLoss(nn.Module):
             state = sim.step(state, ep.action(t, dt_, dev))
             if t not in sup:
                 continue
-            for k, v in frame_terms(state, colors, opac, ep, t, cfg, dev).items():
+            for k, v in frame_terms(state, colors, opac, ep, t, cfg, dev, plane=self.plane).items():
                 sums[k] = sums[k] + v
             if cfg.loss.momentum_weight > 0:
                 sums["momentum"] = sums["momentum"] + sim.momentum_loss(state) / (total_mass * total_mass)
@@ -490,7 +510,8 @@ def validate(sim: Simulator, store: EpisodeStore, names: Sequence[str], cfg: Tra
         frames = list(range(cfg.run.val_frame_stride, ep.num_frames, cfg.run.val_frame_stride))
         for t in frames:
             obs = observed_points(ep, t, cfg.loss.points_max)
-            terms = frame_terms(states[t], init.colors(), init.opacities, ep, t, cfg, sim.device, points=obs)
+            terms = frame_terms(states[t], init.colors(), init.opacities, ep, t, cfg, sim.device, points=obs,
+                                plane=_plane(store.bundle))
             terms["momentum"] = terms["img"].new_zeros(())
             tot += float(total_loss(terms, cfg))
             img += float(terms["img"])
