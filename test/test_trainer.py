@@ -1,6 +1,8 @@
 """`soma train` end to end on a reference-world tiny rope dataset (grasp-and-lift episodes).
 
-One training run (config/train/tiny.yaml, CPU) is started as a subprocess, killed
+One training run (config/train/tiny_mlp.yaml, CPU: the free-form robot force module, which
+starts knowing nothing about the robot, so what training adds is plain) is started as a
+subprocess, killed
 with SIGKILL after its second checkpoint and started again with the same command:
 
 * (c) the second process resumes from the last checkpoint: iteration counter,
@@ -67,10 +69,10 @@ def _read_state(run: Path):
 
 @pytest.fixture(scope="module")
 def trained_run(lift_dataset, tmp_path_factory) -> dict:
-    """Train with `soma train --config tiny`, SIGKILL it after the checkpoint at iteration >= 30,
+    """Train with `soma train --config tiny_mlp`, SIGKILL it after the checkpoint at iteration >= 30,
     rerun the same command to completion."""
     run = tmp_path_factory.mktemp("trainer") / "run"
-    cmd = [sys.executable, "-m", "soma_ros.cli", "train", "--data", str(lift_dataset), "--config", "tiny",
+    cmd = [sys.executable, "-m", "soma_ros.cli", "train", "--data", str(lift_dataset), "--config", "tiny_mlp",
            "--out", str(run), "--quiet"]
     t0 = time.time()
     p = subprocess.Popen(cmd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -217,13 +219,42 @@ def test_trained_model_follows_the_lift(trained_run, lift_dataset):
         assert 0.5 < f["ratio"] < 2.5, f
 
 
+def test_default_coupling_prior_follows_the_lift_before_any_training(trained_run, lift_dataset):
+    """The default `tiny` model's robot effect is the physical coupling (control points drag the
+    splats in reach towards their velocity, strongly with the gripper closed): with random
+    network weights, never trained, the grasped splats already rise with the gripper on the
+    held-out lifts, where the untrained free-form model's stay on the table (previous test)."""
+    from soma_ros.core.robot import RobotModel
+    from soma_ros.core.simulator import Simulator
+    from trainer.config import load_train_config
+    from trainer.dataset import load_dataset
+    from trainer.train import EpisodeStore, load_scene
+
+    run = trained_run["run"]
+    cfg = load_train_config("tiny")
+    robot_spec = next(e for e in cfg.model_config().effects if e.name == "robot")
+    assert robot_spec.params["form"] == "coupling" and robot_spec.direct
+    bundle, hier = load_scene(run / "scene")
+    robot = RobotModel.from_config(cfg.robot, dtype=torch.float64)
+    refs = load_dataset(lift_dataset, "test")
+    store = EpisodeStore(refs, robot, cfg, bundle, hier, run / "cache_default")
+    torch.manual_seed(cfg.seed)
+    sim = Simulator(cfg.model_config())
+    sim.bind_hierarchy(hier)
+    sim.eval()
+    f = _follow(sim, store, [r.name for r in refs], bundle)
+    print("\nuntrained coupling follow:", [round(x["ratio"], 3) for x in f])
+    for x in f:
+        assert 0.5 < x["ratio"] < 2.0, x
+
+
 # --------------------------------------------------------------------------- (b) torchrun
 def test_torchrun_two_processes_on_cpu(trained_run, lift_dataset, tmp_path):
     from soma_ros.core.checkpoint import load_checkpoint, read_checkpoint
 
     run2 = tmp_path / "ddp"
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-           "-m", "soma_ros.cli", "train", "--data", str(lift_dataset), "--config", "tiny", "--out", str(run2),
+           "-m", "soma_ros.cli", "train", "--data", str(lift_dataset), "--config", "tiny_mlp", "--out", str(run2),
            "--set", "schedule.iters_per_epoch=3", "--set", "schedule.stage1.epochs=1",
            "--set", "schedule.stage2.epochs=1", "--quiet"]
     p = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=600)
