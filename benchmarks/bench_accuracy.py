@@ -2,6 +2,7 @@
 
     soma bench accuracy --preset tiny --out runs/accuracy              # rope, cloth, doll
     soma bench accuracy --preset tiny --objects rope --out runs/acc    # one object
+    soma bench accuracy --preset tiny --jobs 2 --out runs/accuracy     # objects in 2 parallel processes
     python -m benchmarks.bench_accuracy --preset tiny --out runs/acc   # same, without the soma CLI
 
 For each object: generate (or reuse) a reference-world dataset, train every
@@ -36,6 +37,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=None, metavar="S", help="reference-world seed (default: the preset's)")
     p.add_argument("--fresh", action="store_true", help="start over (delete OUT/data, OUT/runs, OUT/eval)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--jobs", type=int, default=1, metavar="N",
+                   help="benchmark up to N objects at once, each in its own process (one torch thread each; "
+                        "the slowest object of a previous run in OUT starts first); default 1")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -58,6 +62,10 @@ def run(args: argparse.Namespace) -> int:
         bench = dataclasses.replace(bench, world=w)
     bench.validate()
     objects = [o.strip() for o in args.objects.split(",") if o.strip()] if args.objects else None
+    if args.jobs < 1:
+        raise ValueError(f"--jobs must be >= 1, got {args.jobs}")
+    if args.jobs > 1 and len(objects or bench.objects) > 1:
+        return _run_parallel(args, objects or list(bench.objects))
     t0 = time.time()
     res = run_bench(bench, Path(args.out), objects, fresh=args.fresh, progress=not args.quiet,
                     log=lambda s: print(s, flush=True))
@@ -68,6 +76,69 @@ def run(args: argparse.Namespace) -> int:
         for c in m.get("comparison_test", []):
             print(f"  {obj}: held-out {c['metric']}: full {c['full']:.4f} vs {c['baseline']} {c['baseline_value']:.4f} "
                   f"({'better' if c['full_better'] else 'NOT better'})")
+    return 0
+
+
+def _run_parallel(args: argparse.Namespace, objects: list[str]) -> int:
+    """One child process per object (``--objects OBJ``), at most ``args.jobs`` at once; the children
+    merge their rows into OUT/table.json (see :func:`trainer.bench_accuracy._write`)."""
+    import json
+    import subprocess
+    from pathlib import Path
+
+    out = Path(args.out)
+    if args.fresh and out.exists():
+        import shutil
+
+        for sub in ("data", "runs", "eval", "table.json", "table.md", "bench.json"):
+            target = out / sub
+            shutil.rmtree(target, ignore_errors=True) if target.is_dir() else target.unlink(missing_ok=True)
+    before = {}
+    try:
+        before = {o: float(m.get("seconds", 0)) for o, m in json.loads((out / "bench.json").read_text())["objects"].items()}
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    order = sorted(objects, key=lambda o: -before.get(o, 0.0))  # slowest first (stable: as given otherwise)
+    base = [sys.executable, "-m", "benchmarks.bench_accuracy", "--preset", args.preset, "--out", str(out)]
+    for flag, val in (("--variants", args.variants), ("--episodes", args.episodes), ("--seed", args.seed)):
+        if val is not None:
+            base += [flag, str(val)]
+    if args.quiet:
+        base.append("--quiet")
+    t0 = time.time()
+    print(f"soma bench accuracy: {len(order)} objects in up to {args.jobs} processes: {', '.join(order)}", flush=True)
+    running: list[tuple[str, subprocess.Popen]] = []
+    failed = []
+    pending = list(order)
+    while pending or running:
+        while pending and len(running) < args.jobs:
+            o = pending.pop(0)
+            running.append((o, subprocess.Popen(base + ["--objects", o])))
+        time.sleep(1.0)
+        for o, proc in list(running):
+            if proc.poll() is not None:
+                running.remove((o, proc))
+                if proc.returncode != 0:
+                    failed.append(o)
+                print(f"soma bench accuracy: {o} finished (exit {proc.returncode}) at "
+                      f"{(time.time() - t0) / 60:.1f} min", flush=True)
+    wall = time.time() - t0
+    meta_path = out / "bench.json"
+    if meta_path.is_file():  # the whole run's wall time and command line
+        from trainer.bench_accuracy import _command_line, load_bench_config, table_markdown
+
+        meta = json.loads(meta_path.read_text())
+        meta.update({"wall_seconds": round(wall, 1), "jobs": args.jobs, "command": _command_line()})
+        table = json.loads((out / "table.json").read_text())
+        for name, text in (("bench.json", json.dumps(meta, indent=1, default=str)),
+                           ("table.md", table_markdown(table, load_bench_config(args.preset), meta))):
+            tmp = out / f".{name}.parent.tmp"
+            tmp.write_text(text)
+            os.replace(tmp, out / name)
+    print(f"soma bench accuracy: done in {wall / 60:.1f} min; wrote {out / 'table.md'}, {out / 'table.json'}")
+    if failed:
+        print(f"soma bench accuracy: error: object(s) failed: {', '.join(failed)}", file=sys.stderr)
+        return 1
     return 0
 
 

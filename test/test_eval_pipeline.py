@@ -103,7 +103,7 @@ def test_bench_never_selects_on_the_test_split():
     from trainer.bench_accuracy import _check_no_test_selection, load_bench_config
     from soma_ros.core.config import ConfigError
 
-    for preset in ("tiny", "paper"):
+    for preset in ("tiny", "paper", "tiny_mlp"):
         b = load_bench_config(preset)
         for v in ("full", "state_only", "img_only", "no_mrt"):
             c = variant_train_config(b, "rope", v)
@@ -192,6 +192,25 @@ def test_rerun_reuses_finished_steps(bench_run):
                 assert res2["table"]["rope"][v][split][m] == pytest.approx(res["table"]["rope"][v][split][m], rel=1e-6)
 
 
+def test_parallel_objects_merge_their_rows_into_one_table(tmp_path):
+    """Objects benchmarked by separate processes (``--jobs``) write into one folder: each write
+    keeps the other processes' objects, and an object's own newest rows win."""
+    from trainer.bench_accuracy import _write, load_bench_config
+
+    bench = load_bench_config("tiny")
+    row = lambda x: {"test": {m: x for m in METRICS}, "train": {m: x for m in METRICS}}  # noqa: E731
+    _write(tmp_path, {"doll": {"full": row(1.0)}}, {"objects": {"doll": {"seconds": 10.0}}, "wall_seconds": 10.0}, bench)
+    _write(tmp_path, {"rope": {"full": row(2.0)}}, {"objects": {"rope": {"seconds": 5.0}}, "wall_seconds": 5.0}, bench)
+    _write(tmp_path, {"rope": {"full": row(3.0)}}, {"objects": {"rope": {"seconds": 6.0}}, "wall_seconds": 6.0}, bench)
+    table = json.loads((tmp_path / "table.json").read_text())
+    meta = json.loads((tmp_path / "bench.json").read_text())
+    assert sorted(table) == ["doll", "rope"]
+    assert table["doll"]["full"]["test"]["rmse"] == 1.0 and table["rope"]["full"]["test"]["rmse"] == 3.0
+    assert sorted(meta["objects"]) == ["doll", "rope"] and meta["wall_seconds"] == 10.0
+    md = (tmp_path / "table.md").read_text()
+    assert "## rope" in md and "## doll" in md and md.index("## rope") < md.index("## doll")  # canonical order
+
+
 def test_bench_cli_registration():
     import benchmarks.bench_accuracy as ba
 
@@ -201,3 +220,4 @@ def test_bench_cli_registration():
     args = p.parse_args(["accuracy", "--preset", "tiny", "--objects", "rope", "--out", "x"])
     assert args.bench_func is ba.run and args.objects == "rope" and args.preset == "tiny"
     assert ba.main(["--preset", "nonexistent-preset", "--out", "x"]) == 1
+    assert ba.main(["--preset", "tiny", "--jobs", "0", "--out", "x"]) == 1

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import fcntl
 import json
 import math
 import os
@@ -494,9 +495,35 @@ def run_bench(bench: BenchConfig, out: Path, objects: Optional[Sequence[str]] = 
 
 
 def _write(out: Path, table: dict, meta: dict, bench: BenchConfig) -> None:
-    for name, text in (("table.json", json.dumps(_json_safe(table), indent=1)),
-                       ("bench.json", json.dumps(_json_safe(meta), indent=1, default=str)),
-                       ("table.md", table_markdown(table, bench, meta))):
-        tmp = out / f".{name}.tmp"
-        tmp.write_text(text)
-        os.replace(tmp, out / name)
+    """Write table.json / bench.json / table.md, merged with what other processes wrote there
+    meanwhile: objects benchmarked in parallel (``--jobs``) into the same folder each add their own
+    rows (an exclusive lock on ``OUT/.bench.lock`` around read-merge-write)."""
+    with open(out / ".bench.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            for name, mine in (("table.json", table), ("bench.json", meta)):
+                path = out / name
+                if not path.is_file():
+                    continue
+                try:
+                    theirs = json.loads(path.read_text())
+                except json.JSONDecodeError:
+                    continue
+                if name == "table.json":
+                    for obj, rows in theirs.items():
+                        table.setdefault(obj, rows)
+                else:
+                    for obj, info in theirs.get("objects", {}).items():
+                        meta["objects"].setdefault(obj, info)
+                    meta["wall_seconds"] = max(float(meta.get("wall_seconds") or 0),
+                                               float(theirs.get("wall_seconds") or 0))
+            rank = {o: i for i, o in enumerate(OBJECTS)}
+            table = {o: table[o] for o in sorted(table, key=lambda o: rank.get(o, len(rank)))}
+            for name, text in (("table.json", json.dumps(_json_safe(table), indent=1)),
+                               ("bench.json", json.dumps(_json_safe(meta), indent=1, default=str)),
+                               ("table.md", table_markdown(table, bench, meta))):
+                tmp = out / f".{name}.{os.getpid()}.tmp"
+                tmp.write_text(text)
+                os.replace(tmp, out / name)
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
