@@ -1,6 +1,6 @@
 """A trained model through one whole grasp-lift-lower-release cycle, without ROS.
 
-    python -m benchmarks.model_cycle --run runs/demo [--hold 300]
+    python -m benchmarks.model_cycle --run runs/demo [--hold 300] [--settle-s 1.0]
 
 Steps the run's model (two steps per pose, as the live node does at 60 Hz
 joint states and 120 steps/s) through ``grasp_trajectory`` forward (descend,
@@ -21,12 +21,14 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--run", default="runs/demo", help="run folder with checkpoint.pt and scene/")
     ap.add_argument("--hold", type=int, default=300, help="steps to hold the final pose")
+    ap.add_argument("--settle-s", type=float, default=0.0,
+                    help="LiveSimulator settling after this long quiet with the robot out of reach (0 = off)")
     args = ap.parse_args(argv)
 
     from benchmarks.bench_live import Poser, grasp_trajectory, object_grasp
     from soma_ros.live import load_live
 
-    live = load_live(f"{args.run}/checkpoint.pt", f"{args.run}/scene", max_travel_m=0.0)
+    live = load_live(f"{args.run}/checkpoint.pt", f"{args.run}/scene", max_travel_m=0.0, settle_s=args.settle_s)
     poser = Poser(live.robot, live.base_to_sim.matrix(), live.required_joints,
                   np.asarray(live.bundle.gravity, dtype=np.float64))
     x0 = live.snapshot()[0].means.double().numpy()
@@ -37,7 +39,8 @@ def main(argv=None) -> int:
         x = live.snapshot()[0].means.double().numpy()
         act = live.action(v)
         print(f"{tag:>10}  rope centroid rise {x.mean(0)[2] - x0.mean(0)[2]:+.3f} m   "
-              f"gripper z {float(act.control_points[:, 2].double().mean()):.3f} m   opening {float(act.gripper):.2f}")
+              f"gripper z {float(act.control_points[:, 2].double().mean()):.3f} m   opening {float(act.gripper):.2f}"
+              f"   settles {live.settles}")
 
     print(f"{args.run}: {len(x0)} splats, {len(cycle)} poses each way, 2 steps per pose")
     for name, path in (("grasp+lift", cycle), ("lower+open", cycle[::-1])):

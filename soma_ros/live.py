@@ -14,6 +14,7 @@ directly; the node only moves messages in and out.
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections import deque
@@ -147,13 +148,35 @@ class LiveSimulator:
 
     def __init__(self, sim: Simulator, bundle: SceneBundle, robot: RobotModel,
                  camera_names: Optional[Sequence[str]] = None, render_scale: float = 1.0,
-                 max_travel_m: float = 2.0) -> None:
+                 max_travel_m: float = 2.0, settle_s: float = 0.0, settle_speed: float = 0.01) -> None:
         """``max_travel_m``: a step that puts any splat further than this from the initial
         scene's bounding sphere raises :class:`SimulationDiverged` (0 disables the check).
         A tabletop object does not leave a robot's workspace; a learned model driven
-        outside its training data can run away at its speed bound instead."""
+        outside its training data can run away at its speed bound instead.
+
+        ``settle_s`` (0 = off) and ``settle_speed`` (m/s): *settling*, the learned-model
+        counterpart of a physics engine putting resting bodies to sleep. The model is exactly
+        at rest only in the configuration its episode started from (its response there is
+        subtracted, see :mod:`soma_ros.core.simulator`); after a manipulation the object lies
+        in a new configuration where the network's response is small but not zero, so over
+        thousands of steps it creeps. When no robot control point has been within reach of
+        the object (the robot effect's radius + 1 cm) and no splat has moved faster than
+        ``settle_speed`` for ``settle_s`` seconds of simulated time, the current
+        configuration becomes the new initial state (:meth:`Simulator.init_state` on the
+        current splats: velocities zero, the reference taken there). The robot coming back
+        into reach wakes it as before (its force is a change of the inputs). ``settles``
+        counts them; an object still within 10 um of where its episode started is left alone
+        (it is at its exact fixed point already)."""
         self.sim = sim.eval()
         self.max_travel_m = float(max_travel_m)
+        if settle_s < 0 or not settle_speed > 0:
+            raise ValueError(f"settle_s must be >= 0 and settle_speed > 0, got {settle_s}, {settle_speed}")
+        self.settle_steps = int(round(settle_s / float(bundle.dt))) if settle_s > 0 else 0
+        self.settle_speed = float(settle_speed)
+        self.settles = 0
+        self._quiet_steps = 0
+        robot_force = sim.effects["robot"] if "robot" in sim.effects else None
+        self._reach = (float(robot_force.params.radius) if robot_force is not None else 0.05) + 0.01
         self.bundle = bundle
         self.robot = robot
         self.scene = bundle.scene_context()
@@ -197,6 +220,8 @@ class LiveSimulator:
                 self.template = splats
                 self.state = state
                 self.steps = 0
+                self.settles = 0
+                self._quiet_steps = 0
                 self._bound = (center, radius + self.max_travel_m)
         return len(splats)
 
@@ -258,10 +283,36 @@ class LiveSimulator:
                     raise SimulationDiverged(
                         f"a splat is {far - limit + self.max_travel_m:.2f} m outside the initial scene's bounding "
                         f"sphere (limit {self.max_travel_m:.2f} m): the model left the reachable region")
+            if self.settle_steps:
+                new = self._settle(new, act)
             with self._lock:
                 self.state = new
                 self.steps += 1
         return new, (time.perf_counter() - t0) * 1e3
+
+    def _settle(self, new: SimState, act: Optional[RobotAction]) -> SimState:
+        """Count quiet steps (robot out of reach, every splat slower than ``settle_speed``);
+        after ``settle_steps`` of them restart from the current configuration (see __init__)."""
+        x = new.means.detach()
+        speed = float((new.positions[0] - new.prev_positions[0]).detach().norm(dim=-1).max()) / float(self.scene.dt)
+        near = False
+        if act is not None and act.control_points.shape[0]:
+            cp = act.control_points.to(x.dtype)
+            lo, hi = x.min(0).values - self._reach, x.max(0).values + self._reach
+            inside = ((cp >= lo) & (cp <= hi)).all(-1)
+            if bool(inside.any()):
+                near = bool((torch.cdist(cp[inside], x).min() < self._reach).item())
+        self._quiet_steps = 0 if (near or speed >= self.settle_speed) else self._quiet_steps + 1
+        if self._quiet_steps < self.settle_steps:
+            return new
+        self._quiet_steps = 0
+        rest = new.episode.rest[0].to(new.positions[0].dtype)
+        if float((new.positions[0].detach() - rest).abs().max()) < 1e-5:
+            return new  # still where its episode started: already an exact fixed point
+        self.settles += 1
+        with torch.no_grad():
+            settled = self.sim.init_state(new.to_splats(self.template), self.scene)
+        return dataclasses.replace(settled, control_points=new.control_points)
 
     def snapshot(self) -> tuple[SimState, Splats, int]:
         with self._lock:
@@ -280,7 +331,8 @@ class LiveSimulator:
 
 
 def load_live(checkpoint: str, scene: str, camera_names: Optional[Sequence[str]] = None,
-              render_scale: float = 1.0, device: str = "cpu", max_travel_m: float = 2.0) -> LiveSimulator:
+              render_scale: float = 1.0, device: str = "cpu", max_travel_m: float = 2.0,
+              settle_s: float = 0.0, settle_speed: float = 0.01) -> LiveSimulator:
     """Build a LiveSimulator from a checkpoint file and a scene bundle directory."""
     from .core.checkpoint import load_checkpoint
 
@@ -288,4 +340,4 @@ def load_live(checkpoint: str, scene: str, camera_names: Optional[Sequence[str]]
     bundle = SceneBundle.load(scene)
     robot = RobotModel.from_config(bundle.robot_config)
     return LiveSimulator(sim, bundle, robot, camera_names=camera_names, render_scale=render_scale,
-                         max_travel_m=max_travel_m)
+                         max_travel_m=max_travel_m, settle_s=settle_s, settle_speed=settle_speed)

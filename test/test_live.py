@@ -232,6 +232,58 @@ def test_gripper_out_of_reach_moves_nothing_and_through_the_rope_moves_it(fresh,
     assert torch.allclose(sp.covariances(), state.covs, atol=1e-9)
 
 
+def test_settling_makes_a_moved_object_still_again_and_only_with_the_robot_away(untrained_run, poser):
+    """After the gripper has pushed the rope and left, the random network keeps it creeping (its
+    response is subtracted only in the initial configuration). Settling (robot out of reach and
+    every splat slower than settle_speed for settle_s) restarts from the current configuration:
+    the positions carry over and from then on the rope is bit-exactly still. Never while the
+    robot is within reach."""
+    live = load_live(str(untrained_run[0]), str(untrained_run[1]), settle_s=40 / 30, settle_speed=100.0)
+    assert live.settle_steps == 40
+    m, x_lo, x_hi = _rope_axis(live)
+    g = (x_lo + 0.25 * (x_hi - x_lo), float(np.median(m[:, 1])), float(np.median(m[:, 2])))
+    top = float(m[:, 2].max())
+    high = poser.line((x_lo + 0.05, 0.02, top + 0.07), (x_lo + 0.06, 0.02, top + 0.07), 2)[0]
+    down = poser.line((g[0], g[1], g[2] + 0.12), g, 30, q0=high)
+    high = down[0]
+    x0 = live.snapshot()[0].means
+    for _ in range(45):  # at rest where the episode started: an exact fixed point already, nothing to settle
+        st, _ = live.step(high)
+    assert live.settles == 0 and torch.equal(st.means, x0)
+    for v in down:  # 30 poses, in reach from about the 6th: never 40 quiet steps
+        live.step(v)
+    up = down[::-1]
+    for v in up:
+        live.step(v)
+    assert live.settles == 0
+    k = 0
+    while live.settles == 0 and k < 60:  # out of reach since about the 25th pose up
+        live.step(high)
+        k += 1
+    assert live.settles == 1 and k < 40
+    n = live.settles
+    # (a) without settling the same history creeps on
+    ref = load_live(str(untrained_run[0]), str(untrained_run[1]))
+    for v in [high] * 45 + down + up + [high] * k:
+        ref.step(v)
+    a, _ = ref.step(high)
+    b, _ = ref.step(high)
+    assert not torch.equal(a.means, b.means), "the random model did not creep: nothing to test"
+    # (b) with settling: still, bit for bit, and no further settle needed to stay so
+    s0, _ = live.step(high)
+    for _ in range(25):
+        s1, _ = live.step(high)
+    assert torch.equal(s1.means, s0.means)
+    assert live.settles >= n
+    # the settled configuration is where the rope was (not the initial scene)
+    assert float((s0.means - live.bundle.splats.means.to(s0.means.dtype)).norm(dim=-1).max()) > 1e-3
+    # a reset zeroes the count; a non-positive speed is refused
+    live.reset(live.bundle.splats)
+    assert live.settles == 0
+    with pytest.raises(ValueError, match="settle"):
+        load_live(str(untrained_run[0]), str(untrained_run[1]), settle_s=1.0, settle_speed=0.0)
+
+
 def test_a_step_that_leaves_the_workspace_raises_and_keeps_the_last_state(untrained_run, poser):
     """max_travel_m: a step putting a splat further than that outside the initial scene's
     bounding sphere raises SimulationDiverged and the running state stays the last good one."""

@@ -41,7 +41,7 @@ def _status(k: int):
 
     s = SimStatus(state="running", step=k, num_splats=1234, step_time_ms=1.25 * k, render_time_ms=3.5,
                   joint_state_lag_ms=0.5, step_rate_hz=30.0, image_rate_hz=10.0,
-                  joint_states_received=10 * k, joint_states_rejected=k // 2, failure_restarts=k % 3)
+                  joint_states_received=10 * k, joint_states_rejected=k // 2, failure_restarts=k % 3, settles=k % 2)
     s.header.frame_id = "soma_sim"
     s.header.stamp.sec = 50 + k
     return s

@@ -129,6 +129,13 @@ class SomaSimNode(Node):
         self.max_travel = _float_param(self, "max_object_travel_m", 2.0,
                                        "a step that puts a splat this far outside the initial scene's bounding sphere "
                                        "counts as diverged: logged, and the scene restarts (0 = no check), m", 0.0, 1000.0)
+        self.settle_time = _float_param(self, "settle_time_s", 2.0,
+                                        "settle after this long with the robot out of reach and the object still "
+                                        "(slower than settle_speed_mps): the current configuration becomes the new "
+                                        "initial state, which stops a learned model's slow creep (0 = never), s",
+                                        0.0, 3600.0)
+        self.settle_speed = _float_param(self, "settle_speed_mps", 0.01,
+                                         "a splat slower than this counts as still for settling, m/s", 1e-6, 10.0)
         self.max_joint_age = _float_param(self, "max_joint_state_age_s", 1.0,
                                           "hold the robot still when the newest joint state is older than this, s; "
                                           "joint states stamped further than this ahead of the node clock are rejected",
@@ -148,7 +155,7 @@ class SomaSimNode(Node):
 
         cams = [c for c in gp("cameras") if c]
         self.live = load_live(ckpt, scene, camera_names=cams or None, render_scale=self.render_scale, device=gp("device"),
-                              max_travel_m=self.max_travel)
+                              max_travel_m=self.max_travel, settle_s=self.settle_time, settle_speed=self.settle_speed)
         if gp("robot_config"):
             from ..core.robot import RobotModel
 
@@ -298,6 +305,7 @@ class SomaSimNode(Node):
         st.joint_states_received = self.joints.received
         st.joint_states_rejected = self.joints.rejected
         st.failure_restarts = self._failure_resets
+        st.settles = self.live.settles
         self.pub_status.publish(st)
 
     # ---------------------------------------------------------------- outputs
