@@ -272,6 +272,18 @@ def test_direct_spec_parses_roundtrips_and_is_refused_for_reference_effects():
     assert torch.equal(total, es(ctx))
     assert torch.allclose(direct, ctx.masses[:, None] * torch.tensor([1.0, 0.0, 0.0]))
     assert build_effects(["gravity", "wind"]).split(ctx)[1] is None
+    # feature: false -- integrated, but not in the force the network sees
+    hidden = EffectSpec.parse({"name": "wind", "direct": True, "feature": False, "accel": [1.0, 0.0, 0.0]})
+    assert hidden.to_yaml_dict() == {"name": "wind", "direct": True, "feature": False, "accel": [1.0, 0.0, 0.0]}
+    assert EffectSpec.parse(hidden.to_yaml_dict()) == hidden and "feature" not in s.to_yaml_dict()
+    es2 = build_effects(["gravity", hidden, {"name": "linear_drag", "key": "drag", "coeff": 0.5}])
+    seen, direct2 = es2.split(ctx)
+    assert torch.equal(seen, es2["gravity"](ctx) + es2["drag"](ctx))
+    assert torch.equal(direct2, direct) and not torch.equal(seen, es2(ctx))
+    with pytest.raises(ConfigError, match="feature: false must be direct"):
+        EffectSpec.parse({"name": "wind", "feature": False})
+    with pytest.raises(ConfigError, match="feature: expected bool"):
+        EffectSpec.parse({"name": "wind", "direct": True, "feature": "no"})
 
 
 def test_uniform_direct_wind_translates_rigidly_by_the_discrete_closed_form():

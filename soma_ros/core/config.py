@@ -226,6 +226,12 @@ class EffectSpec:
     the reference effects (gravity, support). Written to YAML / checkpoints
     only when True, so configs without it are unchanged.
 
+    ``feature`` (default True): whether the network sees the term's force in its
+    F/m feature. ``feature: false`` (only with ``direct: true``) makes the term
+    pure physics: integrated explicitly, invisible to the network, which then
+    responds only to the motion it causes (e.g. how the rest of a rope follows
+    the part a gripper drags), not to the force itself.
+
     In YAML an effect is a mapping whose other keys are the params::
 
         - name: support
@@ -239,6 +245,7 @@ class EffectSpec:
     trainable: bool = True
     params: dict = field(default_factory=dict)
     direct: bool = False
+    feature: bool = True
 
     @property
     def instance_key(self) -> str:
@@ -259,6 +266,7 @@ class EffectSpec:
         key = d.pop("key", None)
         trainable = d.pop("trainable", True)
         direct = d.pop("direct", False)
+        feature = d.pop("feature", True)
         params = dict(d.pop("params", {}) or {})
         params.update(d)
         if not isinstance(name, str) or (key is not None and not isinstance(key, str)):
@@ -267,7 +275,11 @@ class EffectSpec:
             raise ConfigError(f"{where}.trainable: expected bool, got {trainable!r}")
         if not isinstance(direct, bool):
             raise ConfigError(f"{where}.direct: expected bool, got {direct!r}")
-        return EffectSpec(name=name, key=key, trainable=trainable, params=params, direct=direct)
+        if not isinstance(feature, bool):
+            raise ConfigError(f"{where}.feature: expected bool, got {feature!r}")
+        if not feature and not direct:
+            raise ConfigError(f"{where}: effect {name!r} with feature: false must be direct: true (else it acts on nothing)")
+        return EffectSpec(name=name, key=key, trainable=trainable, params=params, direct=direct, feature=feature)
 
     def to_yaml_dict(self) -> dict:
         d: dict[str, Any] = {"name": self.name}
@@ -277,6 +289,8 @@ class EffectSpec:
             d["trainable"] = False
         if self.direct:
             d["direct"] = True
+        if not self.feature:
+            d["feature"] = False
         d.update(self.params)
         return d
 

@@ -271,15 +271,17 @@ class EffectSet(nn.Module):
         return [k for k in self.terms if self._specs[k].direct]
 
     def split(self, ctx: EffectContext) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
-        """(total force [N, 3], force of the direct effects alone [N, 3] or None when there are
-        none), each effect evaluated once. ``total`` equals :meth:`forward` bit for bit."""
+        """(force the network sees [N, 3], force of the direct effects alone [N, 3] or None when
+        there are none), each effect evaluated once. The first is every effect but those with
+        ``feature: false``; with none of those it equals :meth:`forward` bit for bit."""
         total = ctx.positions.new_zeros((ctx.num_nodes, 3))
         direct = None
         for key, eff in self.terms.items():
             f = eff(ctx)
             if tuple(f.shape) != (ctx.num_nodes, 3):
                 raise RuntimeError(f"effect {key!r} returned shape {list(f.shape)}, expected [{ctx.num_nodes}, 3]")
-            total = total + f
+            if self._specs[key].feature:
+                total = total + f
             if self._specs[key].direct:
                 direct = f if direct is None else direct + f
         return total, direct

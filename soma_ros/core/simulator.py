@@ -54,7 +54,12 @@ its excess only where the network runs on it (``gnn.splat_head``); otherwise
 splats follow their fine cluster. Reference effects (gravity, support) cannot
 be direct (their response is the learned one, subtracted at rest). With no
 direct effect the step is the network-only step, bit for bit; a direct
-effect whose force is zero adds exact zeros (same positions).
+effect whose force is zero adds exact zeros (same positions). A direct effect with
+``feature: false`` is left out of the F/m feature: pure physics the network does not
+see, so it responds only to the motion the term causes (the default ``tiny`` training
+config runs the robot coupling this way: with the force also as a feature, the network
+learned "robot force -> upward acceleration" from lift episodes and drove the rope up
+while a closed gripper lowered it, a feedback loop that ran to the speed bound).
 
 At rest stays at rest (structural)
 ----------------------------------
