@@ -233,7 +233,7 @@ def test_default_coupling_prior_follows_the_lift_before_any_training(trained_run
     run = trained_run["run"]
     cfg = load_train_config("tiny")
     robot_spec = next(e for e in cfg.model_config().effects if e.name == "robot")
-    assert robot_spec.params["form"] == "coupling" and robot_spec.direct
+    assert robot_spec.params["form"] == "coupling" and robot_spec.direct and not robot_spec.feature
     bundle, hier = load_scene(run / "scene")
     robot = RobotModel.from_config(cfg.robot, dtype=torch.float64)
     refs = load_dataset(lift_dataset, "test")
