@@ -670,6 +670,7 @@ def bench_long(b: _Bench, scene_dir: str, cycle: Sequence[np.ndarray], x0: np.nd
         "cpu": cpu.stop(),
         "steps": prev_step["total"], "seconds": t1 - t0, "steps_per_s": prev_step["total"] / (t1 - t0),
         "failure_restarts": int(p.last_status().failure_restarts),
+        "settles_since_last_restart": int(getattr(p.last_status(), "settles", 0)),
         "finite_all_clouds": seen["finite"] and fin, "clouds_checked": seen["clouds"] + 1,
         "final_max_disp_m": float(np.linalg.norm(x - x0, axis=1).max()) if fin else float("nan"),
         "max_disp_m": max(seen["max_disp"], float(np.linalg.norm(x - x0, axis=1).max()) if fin else 0.0),
@@ -678,7 +679,8 @@ def bench_long(b: _Bench, scene_dir: str, cycle: Sequence[np.ndarray], x0: np.nd
     }
     say(f"  {res['steps']} steps in {res['seconds']:.0f} s; finite {res['finite_all_clouds']}; max displacement "
         f"{res['max_disp_m']:.3f} m; extent {ext0:.3f} -> max {res['max_extent_m']:.3f} m; "
-        f"{res['failure_restarts']} failure restarts (diverged steps caught by the node)")
+        f"{res['failure_restarts']} failure restarts (diverged steps caught by the node); "
+        f"{res['settles_since_last_restart']} settles since the last restart")
     return res
 
 

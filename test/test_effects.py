@@ -186,6 +186,27 @@ def test_robot_coupling_form_is_physical_invariant_and_learnable():
         build_effect({"name": "robot", "form": "coupling", "prior_grip": 1.0})
 
 
+def test_effects_declared_zero_at_rest_are_exactly_zero_at_rest():
+    """``zero_at_rest`` lets the trainer skip the frames before contact; it must hold exactly,
+    whatever the (learnable) parameters."""
+    flagged = [n for n in known_effects() if EFFECTS[n].zero_at_rest]
+    assert {"linear_drag", "quadratic_drag", "table_friction"} <= set(flagged)
+    params = {"linear_drag": {"coeff": 0.7}, "quadratic_drag": {"coeff": -0.3}, "table_friction": {"mu": 0.6}}
+    for name in flagged:
+        eff = build_effect({"name": name, **params.get(name, {})}, attr_dim=5)
+        at_rest = _ctx(z=0.002)  # on the table, in the contact band, velocities exactly 0
+        assert torch.count_nonzero(eff(at_rest)) == 0, name
+        moving = _ctx(z=0.002, vel=torch.full((50, 3), 0.1))
+        assert torch.count_nonzero(eff(moving)) > 0, name
+    from trainer.train import rest_reach
+
+    cfg = load_model_config("cpu")
+    cfg.effects.append(EffectSpec("table_friction", key="friction", params={"mu": 0.5}, direct=True, feature=False))
+    assert rest_reach(Simulator(cfg)) == pytest.approx(0.05 + 0.01)
+    cfg.effects.append(EffectSpec("wind"))
+    assert rest_reach(Simulator(cfg)) is None  # wind acts at rest
+
+
 def test_trainable_false_freezes_and_custom_effects_register():
     eff = build_effect({"name": "wind", "trainable": False, "accel": [1.0, 0.0, 0.0]})
     assert not any(p.requires_grad for p in eff.parameters())

@@ -178,6 +178,9 @@ class Effect(nn.Module):
 
     name: ClassVar[str] = ""
     in_reference: ClassVar[bool] = False
+    #: the force is exactly zero whenever every splat is at rest (velocity-dependent terms):
+    #: frames before the robot reaches the object stay exact no-ops (the trainer skips them)
+    zero_at_rest: ClassVar[bool] = False
 
     @dataclass
     class Params:
@@ -536,6 +539,8 @@ class Wind(Effect):
 class LinearDrag(Effect):
     """-b m v (b in 1/s, learnable, unconstrained so a fit can report its sign)."""
 
+    zero_at_rest = True
+
     @dataclass
     class Params:
         coeff: float = 0.0
@@ -551,6 +556,8 @@ class LinearDrag(Effect):
 @register_effect("quadratic_drag")
 class QuadraticDrag(Effect):
     """-c m |v| v (c in 1/m, learnable)."""
+
+    zero_at_rest = True
 
     @dataclass
     class Params:

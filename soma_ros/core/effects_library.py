@@ -60,6 +60,8 @@ def smoothstep(t: torch.Tensor) -> torch.Tensor:
 class TableFriction(Effect):
     """Signed, smooth Coulomb friction of the table (module docstring)."""
 
+    zero_at_rest = True
+
     @dataclass
     class Params:
         mu: float = 0.0
