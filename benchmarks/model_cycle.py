@@ -1,6 +1,7 @@
 """A trained model through one whole grasp-lift-lower-release cycle, without ROS.
 
     python -m benchmarks.model_cycle --run runs/demo [--hold 300] [--settle-s 1.0]
+    python -m benchmarks.model_cycle --run runs/demo --cycles 12     # repeated cycles (the long live run's)
 
 Steps the run's model (two steps per pose, as the live node does at 60 Hz
 joint states and 120 steps/s) through ``grasp_trajectory`` forward (descend,
@@ -23,7 +24,12 @@ def main(argv=None) -> int:
     ap.add_argument("--hold", type=int, default=300, help="steps to hold the final pose")
     ap.add_argument("--settle-s", type=float, default=0.0,
                     help="LiveSimulator settling after this long quiet with the robot out of reach (0 = off)")
+    ap.add_argument("--cycles", type=int, default=0,
+                    help="instead: N whole grasp-lift-lower-open cycles back to back, as the long live run "
+                         "drives the node; prints the object's drift after each (settling at 2 s, as the node)")
     args = ap.parse_args(argv)
+    if args.cycles:
+        return repeated(args.run, args.cycles)
 
     from benchmarks.bench_live import Poser, grasp_trajectory, object_grasp
     from soma_ros.live import load_live
@@ -53,6 +59,33 @@ def main(argv=None) -> int:
         live.step(cycle[0])
         if k % 60 == 59:
             show(f"hold {k + 1}", cycle[0])
+    return 0
+
+
+def repeated(run: str, n: int) -> int:
+    """Cycles back to back (2 steps per pose); per cycle the centroid's drift from where it
+    started, its height change and the farthest splat from the initial centre."""
+    from benchmarks.bench_live import Poser, grasp_trajectory, object_grasp
+    from soma_ros.live import load_live
+
+    live = load_live(f"{run}/checkpoint.pt", f"{run}/scene", max_travel_m=0.0, settle_s=2.0)
+    poser = Poser(live.robot, live.base_to_sim.matrix(), live.required_joints,
+                  np.asarray(live.bundle.gravity, dtype=np.float64))
+    x0 = live.snapshot()[0].means.double().numpy()
+    grasp, closing = object_grasp(x0, poser.down)
+    fwd = grasp_trajectory(poser, grasp, lift=0.10, above=0.10, steps=30, closing=closing)
+    cycle = fwd + fwd[::-1]
+    c0 = x0.mean(0)
+    print(f"{run}: {len(x0)} splats, {n} cycles of {len(cycle)} poses, 2 steps per pose")
+    for c in range(n):
+        far = 0.0
+        for v in cycle:
+            live.step(v)
+            st, _ = live.step(v)
+            far = max(far, float(np.linalg.norm(st.means.double().numpy() - c0, axis=1).max()))
+        x = st.means.double().numpy()
+        print(f"cycle {c + 1:3d}: centroid drift {np.linalg.norm(x.mean(0) - c0):7.3f} m (height {x.mean(0)[2] - c0[2]:+.3f} m)"
+              f"   farthest splat from the initial centre {far:7.3f} m   settles {live.settles}", flush=True)
     return 0
 
 
