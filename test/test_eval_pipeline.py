@@ -201,12 +201,15 @@ def test_parallel_objects_merge_their_rows_into_one_table(tmp_path):
     row = lambda x: {"test": {m: x for m in METRICS}, "train": {m: x for m in METRICS}}  # noqa: E731
     _write(tmp_path, {"doll": {"full": row(1.0)}}, {"objects": {"doll": {"seconds": 10.0}}, "wall_seconds": 10.0}, bench)
     _write(tmp_path, {"rope": {"full": row(2.0)}}, {"objects": {"rope": {"seconds": 5.0}}, "wall_seconds": 5.0}, bench)
-    _write(tmp_path, {"rope": {"full": row(3.0)}}, {"objects": {"rope": {"seconds": 6.0}}, "wall_seconds": 6.0}, bench)
+    # a process that started before doll was done holds doll's old rows: they must not win
+    _write(tmp_path, {"rope": {"full": row(3.0)}, "doll": {"full": row(9.0)}},
+           {"objects": {"rope": {"seconds": 6.0}, "doll": {"seconds": 99.0}}, "wall_seconds": 6.0}, bench, own=["rope"])
     table = json.loads((tmp_path / "table.json").read_text())
     meta = json.loads((tmp_path / "bench.json").read_text())
     assert sorted(table) == ["doll", "rope"]
     assert table["doll"]["full"]["test"]["rmse"] == 1.0 and table["rope"]["full"]["test"]["rmse"] == 3.0
     assert sorted(meta["objects"]) == ["doll", "rope"] and meta["wall_seconds"] == 10.0
+    assert meta["objects"]["doll"]["seconds"] == 10.0 and meta["objects"]["rope"]["seconds"] == 6.0
     md = (tmp_path / "table.md").read_text()
     assert "## rope" in md and "## doll" in md and md.index("## rope") < md.index("## doll")  # canonical order
 

@@ -262,17 +262,24 @@ def _train_variant(cfg: TrainConfig, obj: str, variant: str, data: Path, run: Pa
     from .train import train
 
     cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, progress=progress))
+    def info(summary: dict) -> dict:
+        return {"val_loss_untrained": summary.get("val_loss_untrained"),
+                "val_loss": summary.get("val_loss"), "iterations": summary.get("iterations"),
+                "best_val_loss": summary.get("best_val_loss"), "best_iteration": summary.get("best_iteration"),
+                "kept": summary.get("kept"), "train_episodes": summary.get("train_episodes"),
+                "val_episodes": summary.get("val_episodes")}
+
     if _checkpoint_complete(run):
         log(f"[{obj}] {variant}: reusing the complete run {run}")
-        return {"reused": True, "seconds": 0.0}
+        try:  # the reused run's own training record
+            summary = json.loads((run / "summary.json").read_text())
+        except (OSError, ValueError):
+            summary = {}
+        return {"reused": True, "seconds": 0.0, "training_seconds": summary.get("seconds"), **info(summary)}
     t0 = time.time()
     log(f"[{obj}] {variant}: training ({cfg.schedule.total_iters} iterations) into {run}")
     summary = train(cfg, data, run, scene_dir=scene, log=lambda s: log(f"[{obj}] {variant}: {s}"))
-    return {"reused": False, "seconds": round(time.time() - t0, 1), "val_loss_untrained": summary.get("val_loss_untrained"),
-            "val_loss": summary.get("val_loss"), "iterations": summary.get("iterations"),
-            "best_val_loss": summary.get("best_val_loss"), "best_iteration": summary.get("best_iteration"),
-            "kept": summary.get("kept"), "train_episodes": summary.get("train_episodes"),
-            "val_episodes": summary.get("val_episodes")}
+    return {"reused": False, "seconds": round(time.time() - t0, 1), **info(summary)}
 
 
 def _copy_context(src_run: Path, dst: Path) -> None:
@@ -290,7 +297,12 @@ def _fit_spring_mass(bench: BenchConfig, obj: str, ctx: EvalContext, full_run: P
     path = out / SPRING_MASS_FILE
     if path.is_file():
         log(f"[{obj}] spring_mass: reusing {path}")
-        return {"reused": True, "seconds": 0.0}
+        try:
+            info = json.loads((out / "fit.json").read_text())
+            return {"reused": True, "seconds": 0.0, "parameters": info["parameters"],
+                    "train_loss": info["loss_final_all_train"]}
+        except (OSError, ValueError, KeyError):
+            return {"reused": True, "seconds": 0.0}
     fc = bench.spring_mass_config(load_object_config(obj).total_mass)
     names = [r.name for r in ctx.episodes("train")]
     log(f"[{obj}] spring_mass: fitting its 5 parameters on "
@@ -447,6 +459,7 @@ def run_bench(bench: BenchConfig, out: Path, objects: Optional[Sequence[str]] = 
                   if v in TRAINED_VARIANTS}
     for (o, v), c in train_cfgs.items():
         _check_no_test_selection(c, f"{o}/{v}")
+    done: list[str] = []
     for obj in objects:
         t_obj = time.time()
         steps: dict = {}
@@ -490,14 +503,18 @@ def run_bench(bench: BenchConfig, out: Path, objects: Optional[Sequence[str]] = 
         log(f"[{obj}] done in {(time.time() - t_obj) / 60:.1f} min")
         meta["wall_seconds"] = round(time.time() - t_start, 1)
         meta["finished"] = time.strftime("%Y-%m-%d %H:%M:%S")
-        _write(out, table, meta, bench)
+        done.append(obj)
+        _write(out, table, meta, bench, own=done)
     return {"table": table, "meta": meta}
 
 
-def _write(out: Path, table: dict, meta: dict, bench: BenchConfig) -> None:
+def _write(out: Path, table: dict, meta: dict, bench: BenchConfig, own: Optional[Sequence[str]] = None) -> None:
     """Write table.json / bench.json / table.md, merged with what other processes wrote there
     meanwhile: objects benchmarked in parallel (``--jobs``) into the same folder each add their own
-    rows (an exclusive lock on ``OUT/.bench.lock`` around read-merge-write)."""
+    rows (an exclusive lock on ``OUT/.bench.lock`` around read-merge-write). For the objects this
+    process benchmarked (``own``; default: all in ``table``) its rows win; for every other object the
+    file's rows win (this process only holds what the file had when it started)."""
+    own = set(table if own is None else own)
     with open(out / ".bench.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
@@ -511,10 +528,12 @@ def _write(out: Path, table: dict, meta: dict, bench: BenchConfig) -> None:
                     continue
                 if name == "table.json":
                     for obj, rows in theirs.items():
-                        table.setdefault(obj, rows)
+                        if obj not in own:
+                            table[obj] = rows
                 else:
                     for obj, info in theirs.get("objects", {}).items():
-                        meta["objects"].setdefault(obj, info)
+                        if obj not in own:
+                            meta["objects"][obj] = info
                     meta["wall_seconds"] = max(float(meta.get("wall_seconds") or 0),
                                                float(theirs.get("wall_seconds") or 0))
             rank = {o: i for i, o in enumerate(OBJECTS)}
