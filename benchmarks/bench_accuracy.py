@@ -123,23 +123,28 @@ def _run_parallel(args: argparse.Namespace, objects: list[str]) -> int:
                 print(f"soma bench accuracy: {o} finished (exit {proc.returncode}) at "
                       f"{(time.time() - t0) / 60:.1f} min", flush=True)
     wall = time.time() - t0
-    meta_path = out / "bench.json"
-    if meta_path.is_file():  # the whole run's wall time and command line
-        from trainer.bench_accuracy import _command_line, load_bench_config, table_markdown
-
-        meta = json.loads(meta_path.read_text())
-        meta.update({"wall_seconds": round(wall, 1), "jobs": args.jobs, "command": _command_line()})
-        table = json.loads((out / "table.json").read_text())
-        for name, text in (("bench.json", json.dumps(meta, indent=1, default=str)),
-                           ("table.md", table_markdown(table, load_bench_config(args.preset), meta))):
-            tmp = out / f".{name}.parent.tmp"
-            tmp.write_text(text)
-            os.replace(tmp, out / name)
+    finish_parallel(out, args.preset, wall, args.jobs)
     print(f"soma bench accuracy: done in {wall / 60:.1f} min; wrote {out / 'table.md'}, {out / 'table.json'}")
     if failed:
         print(f"soma bench accuracy: error: object(s) failed: {', '.join(failed)}", file=sys.stderr)
         return 1
     return 0
+
+
+def finish_parallel(out, preset: str, wall: float, jobs: int) -> None:
+    """After the children: the whole run's wall time, job count and command line into
+    OUT/bench.json and OUT/table.md (through the same locked writer the children use)."""
+    import json
+    from pathlib import Path
+
+    from trainer.bench_accuracy import _command_line, _write, load_bench_config
+
+    out = Path(out)
+    if not (out / "bench.json").is_file() or not (out / "table.json").is_file():
+        return
+    meta = json.loads((out / "bench.json").read_text())
+    meta.update({"wall_seconds": round(wall, 1), "jobs": jobs, "command": _command_line()})
+    _write(out, json.loads((out / "table.json").read_text()), meta, load_bench_config(preset))
 
 
 def register(subparsers) -> None:

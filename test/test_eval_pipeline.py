@@ -213,6 +213,14 @@ def test_parallel_objects_merge_their_rows_into_one_table(tmp_path):
     assert meta["objects"]["doll"]["seconds"] == 10.0 and meta["objects"]["rope"]["seconds"] == 6.0
     md = (tmp_path / "table.md").read_text()
     assert "## rope" in md and "## doll" in md and md.index("## rope") < md.index("## doll")  # canonical order
+    # the parent of the children then records the whole run's wall time and job count, rows untouched
+    from benchmarks.bench_accuracy import finish_parallel
+
+    finish_parallel(tmp_path, "tiny", 42.0 * 60, 2)
+    meta = json.loads((tmp_path / "bench.json").read_text())
+    assert meta["wall_seconds"] == 2520.0 and meta["jobs"] == 2 and meta["command"]
+    assert json.loads((tmp_path / "table.json").read_text()) == table
+    assert "42.0 min wall time" in (tmp_path / "table.md").read_text()
 
 
 def test_bench_cli_registration():

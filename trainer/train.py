@@ -503,6 +503,7 @@ def validate(sim: Simulator, store: EpisodeStore, names: Sequence[str], cfg: Tra
     was = sim.training
     sim.eval()
     tot = img = pts = cnt = follow_sum = follow_n = 0.0
+    plane = _plane(store.bundle)
     for i, name in enumerate(names):
         if i % dist.world != dist.rank:
             continue
@@ -513,7 +514,7 @@ def validate(sim: Simulator, store: EpisodeStore, names: Sequence[str], cfg: Tra
         for t in frames:
             obs = observed_points(ep, t, cfg.loss.points_max)
             terms = frame_terms(states[t], init.colors(), init.opacities, ep, t, cfg, sim.device, points=obs,
-                                plane=_plane(store.bundle))
+                                plane=plane)
             terms["momentum"] = terms["img"].new_zeros(())
             tot += float(total_loss(terms, cfg))
             img += float(terms["img"])

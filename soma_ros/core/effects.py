@@ -489,7 +489,6 @@ class RobotForce(Effect):
         force = (ctx.masses[active] * p.accel_scale)[:, None] * acc
         return out.index_copy(0, active, force)
 
-
     def _coupling(self, ctx: EffectContext, i: torch.Tensor, j: torch.Tensor, rel: torch.Tensor,
                   dist: torch.Tensor, cpv: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
         """Form ``coupling`` (class docstring): [E] edges -> force [N, 3] on the splats."""
