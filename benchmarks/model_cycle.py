@@ -2,13 +2,15 @@
 
     python -m benchmarks.model_cycle --run runs/demo [--hold 300] [--settle-s 1.0]
     python -m benchmarks.model_cycle --run runs/demo --cycles 12     # repeated cycles (the long live run's)
+    python -m benchmarks.model_cycle --run runs/demo --cycles 12 --passive-friction -1   # without the rule
 
 Steps the run's model (two steps per pose, as the live node does at 60 Hz
 joint states and 120 steps/s) through ``grasp_trajectory`` forward (descend,
 close, lift), backward (lower, open, rise) and then holds the last pose, and
 prints the rope's centroid rise and the gripper height every 15 poses: the
 figures behind the README's note on long live runs. The divergence guard is off
-(``max_travel_m=0``) so the model's own behaviour shows.
+(``max_travel_m=0``) so the model's own behaviour shows. The passive-object rule
+is on with the node's default (``--passive-friction 0.5``; negative = off).
 """
 
 from __future__ import annotations
@@ -27,14 +29,17 @@ def main(argv=None) -> int:
     ap.add_argument("--cycles", type=int, default=0,
                     help="instead: N whole grasp-lift-lower-open cycles back to back, as the long live run "
                          "drives the node; prints the object's drift after each (settling at 2 s, as the node)")
+    ap.add_argument("--passive-friction", type=float, default=0.5,
+                    help="the node's passive-object rule with this friction (negative = off; default 0.5, the node's)")
     args = ap.parse_args(argv)
     if args.cycles:
-        return repeated(args.run, args.cycles)
+        return repeated(args.run, args.cycles, args.passive_friction)
 
     from benchmarks.bench_live import Poser, grasp_trajectory, object_grasp
     from soma_ros.live import load_live
 
-    live = load_live(f"{args.run}/checkpoint.pt", f"{args.run}/scene", max_travel_m=0.0, settle_s=args.settle_s)
+    live = load_live(f"{args.run}/checkpoint.pt", f"{args.run}/scene", max_travel_m=0.0, settle_s=args.settle_s,
+                     passive_friction=args.passive_friction)
     poser = Poser(live.robot, live.base_to_sim.matrix(), live.required_joints,
                   np.asarray(live.bundle.gravity, dtype=np.float64))
     x0 = live.snapshot()[0].means.double().numpy()
@@ -62,13 +67,14 @@ def main(argv=None) -> int:
     return 0
 
 
-def repeated(run: str, n: int) -> int:
+def repeated(run: str, n: int, passive_friction: float = 0.5) -> int:
     """Cycles back to back (2 steps per pose); per cycle the centroid's drift from where it
     started, its height change and the farthest splat from the initial centre."""
     from benchmarks.bench_live import Poser, grasp_trajectory, object_grasp
     from soma_ros.live import load_live
 
-    live = load_live(f"{run}/checkpoint.pt", f"{run}/scene", max_travel_m=0.0, settle_s=2.0)
+    live = load_live(f"{run}/checkpoint.pt", f"{run}/scene", max_travel_m=0.0, settle_s=2.0,
+                     passive_friction=passive_friction)
     poser = Poser(live.robot, live.base_to_sim.matrix(), live.required_joints,
                   np.asarray(live.bundle.gravity, dtype=np.float64))
     x0 = live.snapshot()[0].means.double().numpy()
@@ -76,7 +82,8 @@ def repeated(run: str, n: int) -> int:
     fwd = grasp_trajectory(poser, grasp, lift=0.10, above=0.10, steps=30, closing=closing)
     cycle = fwd + fwd[::-1]
     c0 = x0.mean(0)
-    print(f"{run}: {len(x0)} splats, {n} cycles of {len(cycle)} poses, 2 steps per pose")
+    print(f"{run}: {len(x0)} splats, {n} cycles of {len(cycle)} poses, 2 steps per pose, passive-object rule "
+          f"{'off' if passive_friction < 0 else f'on (friction {passive_friction})'}")
     for c in range(n):
         far = 0.0
         for v in cycle:

@@ -148,7 +148,8 @@ class LiveSimulator:
 
     def __init__(self, sim: Simulator, bundle: SceneBundle, robot: RobotModel,
                  camera_names: Optional[Sequence[str]] = None, render_scale: float = 1.0,
-                 max_travel_m: float = 2.0, settle_s: float = 0.0, settle_speed: float = 0.01) -> None:
+                 max_travel_m: float = 2.0, settle_s: float = 0.0, settle_speed: float = 0.01,
+                 passive_friction: Optional[float] = None) -> None:
         """``max_travel_m``: a step that puts any splat further than this from the initial
         scene's bounding sphere raises :class:`SimulationDiverged` (0 disables the check).
         A tabletop object does not leave a robot's workspace; a learned model driven
@@ -166,7 +167,17 @@ class LiveSimulator:
         current splats: velocities zero, the reference taken there). The robot coming back
         into reach wakes it as before (its force is a change of the inputs). ``settles``
         counts them; an object still within 10 um of where its episode started is left alone
-        (it is at its exact fixed point already)."""
+        (it is at its exact fixed point already).
+
+        ``passive_friction`` (None: the checkpoint's setting, off unless trained with it; a
+        number: on, with this friction coefficient; negative: off): the simulator's
+        passive-object rule (``DynamicsConfig.passive_friction``, :mod:`soma_ros.core.simulator`).
+        Settling stops a slow creep once the object is still; this rule stops the object being
+        accelerated away by the learned dynamics in the first place (over repeated grasp cycles
+        the ``tiny`` model without it slid the rope 8.9 m in six cycles; see the README)."""
+        if passive_friction is not None:
+            sim.config.dynamics.passive_friction = None if passive_friction < 0 else float(passive_friction)
+            sim.config.dynamics.validate()
         self.sim = sim.eval()
         self.max_travel_m = float(max_travel_m)
         if settle_s < 0 or not settle_speed > 0:
@@ -332,7 +343,8 @@ class LiveSimulator:
 
 def load_live(checkpoint: str, scene: str, camera_names: Optional[Sequence[str]] = None,
               render_scale: float = 1.0, device: str = "cpu", max_travel_m: float = 2.0,
-              settle_s: float = 0.0, settle_speed: float = 0.01) -> LiveSimulator:
+              settle_s: float = 0.0, settle_speed: float = 0.01,
+              passive_friction: Optional[float] = None) -> LiveSimulator:
     """Build a LiveSimulator from a checkpoint file and a scene bundle directory."""
     from .core.checkpoint import load_checkpoint
 
@@ -340,4 +352,5 @@ def load_live(checkpoint: str, scene: str, camera_names: Optional[Sequence[str]]
     bundle = SceneBundle.load(scene)
     robot = RobotModel.from_config(bundle.robot_config)
     return LiveSimulator(sim, bundle, robot, camera_names=camera_names, render_scale=render_scale,
-                         max_travel_m=max_travel_m, settle_s=settle_s, settle_speed=settle_speed)
+                         max_travel_m=max_travel_m, settle_s=settle_s, settle_speed=settle_speed,
+                         passive_friction=passive_friction)

@@ -284,6 +284,29 @@ def test_settling_makes_a_moved_object_still_again_and_only_with_the_robot_away(
         load_live(str(untrained_run[0]), str(untrained_run[1]), settle_s=1.0, settle_speed=0.0)
 
 
+def test_passive_rule_is_a_live_option_and_stops_the_root_after_a_push(untrained_run, poser):
+    """``passive_friction``: None keeps the checkpoint's setting (off), a number turns the
+    passive-object rule on, a negative one off. With it, after the gripper has pushed the rope
+    and left, the object's translation (the root) comes to rest on the table."""
+    ck, sc = str(untrained_run[0]), str(untrained_run[1])
+    assert load_live(ck, sc).sim.config.dynamics.passive_friction is None
+    assert load_live(ck, sc, passive_friction=-1.0).sim.config.dynamics.passive_friction is None
+    live = load_live(ck, sc, passive_friction=0.5)
+    assert live.sim.config.dynamics.passive_friction == 0.5
+    m, x_lo, x_hi = _rope_axis(live)
+    g = (x_lo + 0.25 * (x_hi - x_lo), float(np.median(m[:, 1])), float(np.median(m[:, 2])))
+    top = float(m[:, 2].max())
+    high = poser.line((x_lo + 0.05, 0.02, top + 0.07), (x_lo + 0.06, 0.02, top + 0.07), 2)[0]
+    down = poser.line((g[0], g[1], g[2] + 0.12), g, 30, q0=high)
+    roots = []
+    for v in [down[0]] * 5 + down + down[::-1] + [down[0]] * 40:
+        st, _ = live.step(v)
+        roots.append(st.positions[-1].clone())
+    moved = max(float((r - roots[0]).norm()) for r in roots)
+    assert moved > 1e-4, "the push did not move the rope: nothing to test"
+    assert torch.equal(roots[-1], roots[-10]), "the root still moves 30 steps after the robot left"
+
+
 def test_a_step_that_leaves_the_workspace_raises_and_keeps_the_last_state(untrained_run, poser):
     """max_travel_m: a step putting a splat further than that outside the initial scene's
     bounding sphere raises SimulationDiverged and the running state stays the last good one."""

@@ -182,6 +182,13 @@ class DynamicsConfig:
     2 max_log_stretch after); a node's residual offset from the position its
     anchor carries it to is at most ``residual_factor`` x its anchor's rest
     radius.
+
+    ``passive_friction`` (None = off; the default, and what every training config uses):
+    the *passive object* rule at the root (see :mod:`.simulator`). On a step where every
+    force but gravity and the support is zero or integrated directly (``direct`` effects),
+    the network may not raise the root's horizontal speed or its upward speed, and while the object touches the support (its lowest splat within
+    ``passive_contact_m`` of its lowest height in the episode's initial state) Coulomb
+    friction with coefficient ``passive_friction`` brakes the horizontal speed.
     """
 
     accel_scale: float = 9.81
@@ -189,12 +196,18 @@ class DynamicsConfig:
     max_speed: float = 2.0
     max_log_stretch: float = 0.25
     residual_factor: float = 2.0
+    passive_friction: Optional[float] = None
+    passive_contact_m: float = 0.01
 
     def validate(self, where: str = "dynamics") -> None:
-        for name in ("accel_scale", "velocity_scale", "max_speed", "max_log_stretch", "residual_factor"):
+        for name in ("accel_scale", "velocity_scale", "max_speed", "max_log_stretch", "residual_factor",
+                     "passive_contact_m"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ConfigError(f"{where}.{name}: must be finite and > 0, got {v}")
+        pf = self.passive_friction
+        if pf is not None and not (math.isfinite(pf) and pf >= 0):
+            raise ConfigError(f"{where}.passive_friction: must be None (off) or finite and >= 0, got {pf}")
 
 
 @dataclass

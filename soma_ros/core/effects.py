@@ -277,17 +277,32 @@ class EffectSet(nn.Module):
         """(force the network sees [N, 3], force of the direct effects alone [N, 3] or None when
         there are none), each effect evaluated once. The first is every effect but those with
         ``feature: false``; with none of those it equals :meth:`forward` bit for bit."""
+        total, direct, _ = self.split_active(ctx, check_active=False)
+        return total, direct
+
+    def split_active(self, ctx: EffectContext, check_active: bool = True
+                     ) -> tuple[torch.Tensor, Optional[torch.Tensor], int]:
+        """:meth:`split` plus which non-reference forces act (exert a force on any splat):
+        0 = none (only gravity and the support: the object is untouched), 1 = only ``direct``
+        ones, 2 = one that is not ``direct``. Below 2 the network's output is the object's
+        response to gravity, the support and the motion the direct effects cause, to no other
+        force (the passive-object rule of :mod:`.simulator` applies). Always 2 when
+        ``check_active`` is False, which skips the check and its device synchronisations."""
         total = ctx.positions.new_zeros((ctx.num_nodes, 3))
         direct = None
+        level = 0 if check_active else 2
         for key, eff in self.terms.items():
             f = eff(ctx)
             if tuple(f.shape) != (ctx.num_nodes, 3):
                 raise RuntimeError(f"effect {key!r} returned shape {list(f.shape)}, expected [{ctx.num_nodes}, 3]")
-            if self._specs[key].feature:
+            spec = self._specs[key]
+            if level < 2 and not eff.in_reference and (level < 1 or not spec.direct) and bool((f != 0).any()):
+                level = 1 if spec.direct else 2
+            if spec.feature:
                 total = total + f
-            if self._specs[key].direct:
+            if spec.direct:
                 direct = f if direct is None else direct + f
-        return total, direct
+        return total, direct, level
 
     def per_term(self, ctx: EffectContext) -> dict[str, torch.Tensor]:
         """Force [N, 3] of every effect, by key."""

@@ -61,6 +61,15 @@ config runs the robot coupling this way: with the force also as a feature, the n
 learned "robot force -> upward acceleration" from lift episodes and drove the rope up
 while a closed gripper lowered it, a feedback loop that ran to the speed bound).
 
+Passive object (``DynamicsConfig.passive_friction``, off unless set)
+----------------------------------------------------------------
+The root carries the object's translation and is the one unbounded level. On a step
+where every force other than gravity and the support is zero or direct, the network's
+root update may slow the root down and make it fall, but not raise its horizontal or
+upward speed; resting on the table, Coulomb friction brakes its horizontal speed
+(:meth:`Simulator._passive_root`). Zero motion stays exactly zero (the rest fixed point
+below is kept bit for bit).
+
 At rest stays at rest (structural)
 ----------------------------------
 The initial state of an episode is taken to be in static equilibrium under
@@ -600,8 +609,9 @@ class Simulator(nn.Module):
             )
         if action is not None and not isinstance(action, RobotAction):
             raise TypeError(f"step: action must be a RobotAction or None, got {type(action).__name__}")
-        f, f_direct = self.effects.split(self.effect_context(state, action))
-        nxt, _ = self._advance(state, action, f, state.episode.reference, f_direct)
+        passive_rule = self.config.dynamics.passive_friction is not None
+        f, f_direct, acting = self.effects.split_active(self.effect_context(state, action), check_active=passive_rule)
+        nxt, _ = self._advance(state, action, f, state.episode.reference, f_direct, passive=acting if passive_rule else 2)
         return nxt
 
     forward = step
@@ -680,11 +690,14 @@ class Simulator(nn.Module):
         forces: torch.Tensor,
         reference: Optional[list[Optional[torch.Tensor]]],
         direct: Optional[torch.Tensor] = None,
+        passive: int = 2,
     ) -> tuple[SimState, list[Optional[torch.Tensor]]]:
         """Apply one step with splat forces [N0, 3]. ``reference`` None = reference pass
         (zero update, raw outputs returned); else outputs minus reference drive the update.
         ``direct`` [N0, 3]: the part of ``forces`` from direct effects, also integrated as an
-        explicit acceleration (root: mean; lower levels: excess over the parent's)."""
+        explicit acceleration (root: mean; lower levels: excess over the parent's).
+        ``passive``: below 2, apply the passive-object rule to the root (:meth:`_passive_root`;
+        0 = untouched, 1 = only direct non-reference forces act; see ``EffectSet.split_active``)."""
         h, ep, cfg = self.hierarchy, state.episode, self.config
         dyn_cfg = cfg.dynamics
         L = h.root_level
@@ -741,10 +754,16 @@ class Simulator(nn.Module):
             delta = torch.zeros_like(out) if reference is None else out - reference[l]
             # translation: residual velocity and offset, bounded
             acc = dyn_cfg.accel_scale * delta[:, :3]
+            a_d = None
             if a_direct is not None:  # residual physics: own direct acceleration minus the anchor's
                 a_d = a_direct[l] if l == L else a_direct[l] - a_direct[l + 1].index_select(0, h.parents[l])
-                acc = acc + a_d
-            v_new = _clamp_norm(v_rel + dt * acc, dyn_cfg.max_speed)
+            if passive < 2 and l == L and reference is not None:
+                v_new = _clamp_norm(self._passive_root(v_rel, v_rel + dt * acc, a_d, state, untouched=passive == 0),
+                                    dyn_cfg.max_speed)
+            else:
+                if a_d is not None:
+                    acc = acc + a_d
+                v_new = _clamp_norm(v_rel + dt * acc, dyn_cfg.max_speed)
             d_new = state.resid[l] + dt * v_new
             if l < L:
                 d_new = _clamp_norm(d_new, ep.residual_limit[l])
@@ -781,6 +800,59 @@ class Simulator(nn.Module):
         )
         nxt.covs, nxt.quats = self._splat_shape(new_def, nxt.rot, ep)
         return nxt, raw
+
+    def _passive_root(self, v_old: torch.Tensor, v_net: torch.Tensor, a_direct: Optional[torch.Tensor],
+                      state: SimState, untouched: bool = False) -> torch.Tensor:
+        """The passive-object rule (``DynamicsConfig.passive_friction``): the root's residual
+        velocity [1, 3] after a step, from the previous one ``v_old``, the network's update
+        ``v_net`` and the direct effects' root acceleration ``a_direct`` ([1, 3] or None).
+
+        Applied on steps where every force but gravity and the support is either zero or
+        integrated directly (``EffectSet.split_active``): the network's root output is then the
+        object's response to gravity and the support, which can make it fall, stop a fall and
+        brake a slide, but give it no horizontal momentum and no upward speed (u: along the
+        table normal, h: perpendicular to it). So
+
+        1. the network's update may not raise the horizontal speed |v_h| above the previous
+           one, nor v_u above max(previous v_u, 0) -- above max(previous v_u - |g| dt, 0) when
+           the object is ``untouched`` (no non-reference force at all: a rising object slows
+           down at least as fast as under gravity). Falling and slowing down are the network's;
+        2. the direct effects' acceleration is added (robot coupling, wind);
+        3. while the object rests on the support (its lowest splat within ``passive_contact_m``
+           of its lowest height in the episode's initial state): Coulomb friction takes
+           mu |g| dt off |v_h|, down to 0 (a direct push weaker than mu |g| moves nothing, a
+           stronger one accelerates by the excess).
+
+        It bounds what a learned model driven outside its training data can do: without it a
+        model that is off by a small force in a new resting configuration accelerates the
+        object away, step after step.
+        """
+        ep, dyn = state.episode, self.config.dynamics
+        up, d = ep.scene.plane_normal, ep.scene.plane_offset
+        g_dt = float(ep.scene.gravity.norm()) * float(ep.scene.dt)
+
+        def parts(v):
+            vu = (v * up).sum(-1, keepdim=True)
+            return vu, v - vu * up
+
+        vu0, vh0 = parts(v_old)
+        vu1, vh1 = parts(v_net)
+        s0, s1 = vh0.norm(dim=-1, keepdim=True), vh1.norm(dim=-1, keepdim=True)
+        vh1 = vh1 * torch.where(s1 > s0, s0 / s1.clamp_min(1e-30), torch.ones_like(s1))
+        up_cap = (vu0 - g_dt if untouched else vu0).clamp_min(0.0)
+        v = vh1 + torch.minimum(vu1, up_cap) * up
+        if a_direct is not None:
+            v = v + float(ep.scene.dt) * a_direct
+        lowest = (state.positions[0] @ up + d).min()
+        rest_lowest = (ep.rest[0] @ up + d).min()
+        if bool(lowest <= rest_lowest + dyn.passive_contact_m):
+            vu, vh = parts(v)
+            mu = float(dyn.passive_friction)
+            if mu > 0:
+                sh = vh.norm(dim=-1, keepdim=True)
+                vh = vh * ((sh - mu * g_dt).clamp_min(0.0) / sh.clamp_min(1e-30))
+            v = vh + vu * up
+        return v
 
     def _splat_shape(self, deform, rot, ep: Episode) -> tuple[torch.Tensor, torch.Tensor]:
         """Splat covariances Fbar Sigma Fbar^T [N0,3,3] and quaternions Rbar q_rest [N0,4]."""

@@ -136,6 +136,11 @@ class SomaSimNode(Node):
                                         0.0, 3600.0)
         self.settle_speed = _float_param(self, "settle_speed_mps", 0.01,
                                          "a splat slower than this counts as still for settling, m/s", 1e-6, 10.0)
+        self.passive_friction = _float_param(self, "passive_friction", 0.5,
+                                             "passive-object rule: when no force but gravity, the support and direct "
+                                             "effects acts, the learned dynamics may not speed the object up "
+                                             "horizontally or upwards, and on the table Coulomb friction with this "
+                                             "coefficient brakes it (negative = off)", -1.0, 10.0)
         self.max_joint_age = _float_param(self, "max_joint_state_age_s", 1.0,
                                           "hold the robot still when the newest joint state is older than this, s; "
                                           "joint states stamped further than this ahead of the node clock are rejected",
@@ -155,7 +160,8 @@ class SomaSimNode(Node):
 
         cams = [c for c in gp("cameras") if c]
         self.live = load_live(ckpt, scene, camera_names=cams or None, render_scale=self.render_scale, device=gp("device"),
-                              max_travel_m=self.max_travel, settle_s=self.settle_time, settle_speed=self.settle_speed)
+                              max_travel_m=self.max_travel, settle_s=self.settle_time, settle_speed=self.settle_speed,
+                              passive_friction=self.passive_friction)
         if gp("robot_config"):
             from ..core.robot import RobotModel
 

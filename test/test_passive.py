@@ -1,0 +1,117 @@
+"""The passive-object rule (DynamicsConfig.passive_friction, soma_ros.core.simulator)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from soma_ros.core.config import ConfigError, load_model_config
+from soma_ros.core.effects import EffectContext, build_effects
+from soma_ros.core.scenes import synthetic_rope
+from soma_ros.core.simulator import RobotAction, SceneContext, Simulator
+
+torch.set_num_threads(1)
+G_DT = 9.81 / 30.0  # |g| dt of SceneContext.table()
+
+
+def _sim(mu, n=600, seed=0):
+    torch.manual_seed(seed)
+    cfg = load_model_config("cpu")
+    cfg.dynamics.passive_friction = mu
+    sim = Simulator(cfg).eval()
+    with torch.no_grad():
+        s0 = sim.init_state(synthetic_rope(n, seed=seed, center=(0.0, 0.0, 0.0)), SceneContext.table())
+    return sim, s0
+
+
+def _lifted(state, dz):
+    return dataclasses.replace(state, positions=[p + torch.tensor([0.0, 0.0, dz]) for p in state.positions])
+
+
+def test_velocity_limits_by_hand():
+    """Hand-computed cases of the rule on the root velocity (z up, table at z = 0, mu = 0.5)."""
+    sim, s0 = _sim(0.5)
+    air = _lifted(s0, 0.05)  # off the table: no friction
+    v = lambda *x: torch.tensor([x], dtype=torch.float32)  # noqa: E731
+    pr = sim._passive_root
+    # horizontal speed may not grow: 0.632 m/s capped to the previous 0.5, direction kept
+    out = pr(v(0.5, 0, 0), v(0.6, 0.2, 0), None, air)
+    assert torch.allclose(out, v(0.6, 0.2, 0) * 0.5 / (0.6 ** 2 + 0.2 ** 2) ** 0.5, atol=1e-6)
+    # slowing down and falling are the network's: unchanged
+    assert torch.equal(pr(v(0.5, 0, 0), v(0.1, 0, -0.3), None, air), v(0.1, 0, -0.3))
+    # upward speed: at most max(previous, 0)
+    assert torch.allclose(pr(v(0, 0, -0.2), v(0, 0, 0.1), None, air), v(0, 0, 0))
+    assert torch.allclose(pr(v(0, 0, 0.2), v(0, 0, 0.3), None, air), v(0, 0, 0.2))
+    # on the table: Coulomb friction takes mu |g| dt = 0.1635 m/s off the horizontal speed
+    out = pr(v(0.5, 0, 0), v(0.6, 0, 0), None, s0)
+    assert torch.allclose(out, v(0.5 - 0.5 * G_DT, 0, 0), atol=1e-6)
+    assert torch.equal(pr(v(0.1, 0, 0), v(0.1, 0, 0), None, s0), v(0, 0, 0))  # stops, no reversal
+    # direct effects act after the cap and before friction: a push weaker than mu |g| moves nothing,
+    # a stronger one accelerates by the excess
+    assert torch.equal(pr(v(0, 0, 0), v(0, 0, 0), v(4.0, 0, 0), s0), v(0, 0, 0))
+    out = pr(v(0, 0, 0), v(0, 0, 0), v(9.0, 0, 0), s0)
+    assert torch.allclose(out, v((9.0 - 0.5 * 9.81) / 30.0, 0, 0), atol=1e-6)
+    assert torch.allclose(pr(v(0, 0, 0), v(0, 0, 0), v(0, 0, 3.0), air), v(0, 0, 0.1), atol=1e-6)  # lift: direct
+    # untouched (no non-reference force at all): a rising object slows down at least at |g|
+    assert torch.allclose(pr(v(0, 0, 0.5), v(0, 0, 0.5), None, air, untouched=True), v(0, 0, 0.5 - G_DT), atol=1e-6)
+    assert torch.equal(pr(v(0, 0, 0.2), v(0, 0, 0.3), None, air, untouched=True), v(0, 0, 0))
+    # on the table, vertical motion down stays the network's (friction is horizontal only)
+    assert torch.equal(pr(v(0, 0, 0), v(0, 0, -0.3), None, s0), v(0, 0, -0.3))
+
+
+def test_untouched_slide_stops_and_rest_is_kept_exactly():
+    """A random-weight model, its object given a 0.3 m/s horizontal slide with the robot far away:
+    without the rule it keeps going; with it the horizontal speed never grows and the slide
+    stops within ceil(0.3 / (mu |g| dt)) steps. At rest, the rule changes nothing (bit for bit)."""
+    far = RobotAction(torch.tensor([[2.0, 2.0, 0.5]]), 1.0)
+    outs = {}
+    for mu in (None, 0.5):
+        sim, s0 = _sim(mu)
+        with torch.no_grad():
+            rest = sim.rollout(s0, [far] * 20)[-1]
+            assert torch.equal(rest.means, s0.means)  # the rest fixed point, with the rule on too
+            L = sim.hierarchy.root_level
+            push = torch.tensor([[0.3 * s0.episode.scene.dt, 0.0, 0.0]])
+            s = dataclasses.replace(s0, resid_prev=[r if l != L else r - push for l, r in enumerate(s0.resid)])
+            speeds = []
+            for _ in range(40):
+                prev_resid = s.resid[L]
+                s = sim.step(s, far)
+                speeds.append(float((s.resid[L] - prev_resid)[0, :2].norm()) / s0.episode.scene.dt)
+        outs[mu] = (speeds, float((s.positions[L] - s0.positions[L]).norm()))
+    free, held = outs[None], outs[0.5]
+    assert free[0][-1] > 0.1 and free[1] > 0.3  # the network alone lets it slide on
+    assert all(b <= a + 1e-6 for a, b in zip([0.3] + held[0], held[0]))
+    assert held[0][1] == 0.0 and held[1] < 0.02  # 0.3 - 2 x 0.1635 < 0: at rest after two steps
+
+
+def test_which_forces_act():
+    es = build_effects(["gravity", "support", {"name": "wind", "direct": True, "accel": [1.0, 0.0, 0.0]},
+                        {"name": "linear_drag", "coeff": 0.5}])
+    x = synthetic_rope(200, seed=1, center=(0.0, 0.0, 0.0)).means
+    ctx = lambda v: EffectContext(positions=x, velocities=v, masses=torch.full((200,), 1e-4),  # noqa: E731
+                                  attrs=torch.zeros(200, 0), gravity=torch.tensor([0.0, 0.0, -9.81]),
+                                  plane_normal=torch.tensor([0.0, 0.0, 1.0]), plane_offset=torch.tensor(0.0),
+                                  dt=1 / 30)
+    total, direct, acting = es.split_active(ctx(torch.zeros_like(x)))
+    assert acting == 1 and direct is not None  # direct wind, and a drag at zero speed: passive, not untouched
+    assert es.split_active(ctx(torch.ones_like(x)))[2] == 2  # a moving object feels the (feature) drag
+    assert es.split_active(ctx(torch.zeros_like(x)), check_active=False)[2] == 2
+    calm = build_effects(["gravity", "support", {"name": "wind", "direct": True}])  # zero wind
+    assert calm.split_active(ctx(torch.zeros_like(x)))[2] == 0
+    t2, d2 = es.split(ctx(torch.zeros_like(x)))
+    assert torch.equal(t2, total) and torch.equal(d2, direct)
+
+
+def test_config_validation_and_checkpoint_default():
+    cfg = load_model_config("cpu")
+    assert cfg.dynamics.passive_friction is None  # training and evaluation configs: off
+    cfg.dynamics.passive_friction = -0.1
+    with pytest.raises(ConfigError, match="passive_friction"):
+        cfg.dynamics.validate()
+    cfg.dynamics.passive_friction = 0.5
+    cfg.dynamics.passive_contact_m = 0.0
+    with pytest.raises(ConfigError, match="passive_contact_m"):
+        cfg.dynamics.validate()
