@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from .core.cameras import Cameras
+from .core.effects import near_box
 from .core.render import RenderOutput, render
 from .core.robot import RobotModel
 from .core.scene_bundle import SceneBundle
@@ -309,9 +310,8 @@ class LiveSimulator:
         near = False
         if act is not None and act.control_points.shape[0]:
             cp = act.control_points.to(x.dtype)
-            lo, hi = x.min(0).values - self._reach, x.max(0).values + self._reach
-            inside = ((cp >= lo) & (cp <= hi)).all(-1)
-            if bool(inside.any()):
+            inside = near_box(x, cp, self._reach)  # control points inside the object's box grown by the reach
+            if inside.numel():
                 near = bool((torch.cdist(cp[inside], x).min() < self._reach).item())
         self._quiet_steps = 0 if (near or speed >= self.settle_speed) else self._quiet_steps + 1
         if self._quiet_steps < self.settle_steps:

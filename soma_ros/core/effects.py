@@ -451,16 +451,14 @@ class RobotForce(Effect):
     def edges(self, ctx: EffectContext) -> tuple[torch.Tensor, torch.Tensor]:
         """(control-point index [E], splat index [E]): each control point's nearest
         ``max_neighbors`` splats closer than the radius."""
-        cp = ctx.control_points
+        cp = ctx.control_points.detach()
         r = self.params.radius
         x = ctx.positions.detach()
-        lo = cp.detach().min(0).values - r
-        hi = cp.detach().max(0).values + r
-        cand = torch.nonzero(((x >= lo) & (x <= hi)).all(-1)).squeeze(-1)  # bounding-box prefilter
+        cand = near_box(cp, x, r)
         if cand.numel() == 0:
             z = torch.zeros(0, dtype=torch.long, device=x.device)
             return z, z
-        d2 = ((x[cand][None, :, :] - cp.detach()[:, None, :]) ** 2).sum(-1)  # [P, C]
+        d2 = ((x[cand][None, :, :] - cp[:, None, :]) ** 2).sum(-1)  # [P, C]
         k = self.params.max_neighbors
         if k and cand.numel() > k:
             d2k, ck = torch.topk(d2, k, dim=1, largest=False, sorted=False)  # [P, k]
@@ -529,6 +527,14 @@ class RobotForce(Effect):
         wsum = out.new_zeros((out.shape[0],)).index_add_(0, i, w[:, 0])
         acc = acc / wsum.clamp_min(1.0)[:, None]
         return ctx.masses[:, None] * acc
+
+
+def near_box(points: torch.Tensor, x: torch.Tensor, r: float) -> torch.Tensor:
+    """Indices [C] of the rows of ``x`` [N, 3] inside the bounding box of ``points`` [P, 3]
+    grown by ``r``: a cheap prefilter for "within r of any of the points" (a superset)."""
+    lo = points.min(0).values - r
+    hi = points.max(0).values + r
+    return torch.nonzero(((x >= lo) & (x <= hi)).all(-1)).squeeze(-1)
 
 
 @register_effect("wind")
