@@ -843,15 +843,14 @@ class Simulator(nn.Module):
         v = vh1 + torch.minimum(vu1, up_cap) * up
         if a_direct is not None:
             v = v + float(ep.scene.dt) * a_direct
-        lowest = (state.positions[0] @ up + d).min()
-        rest_lowest = (ep.rest[0] @ up + d).min()
-        if bool(lowest <= rest_lowest + dyn.passive_contact_m):
-            vu, vh = parts(v)
-            mu = float(dyn.passive_friction)
-            if mu > 0:
+        mu = float(dyn.passive_friction)
+        if mu > 0:
+            lowest = (state.positions[0] @ up + d).min()
+            rest_lowest = (ep.rest[0] @ up + d).min()
+            if bool(lowest <= rest_lowest + dyn.passive_contact_m):
+                vu, vh = parts(v)
                 sh = vh.norm(dim=-1, keepdim=True)
-                vh = vh * ((sh - mu * g_dt).clamp_min(0.0) / sh.clamp_min(1e-30))
-            v = vh + vu * up
+                v = vu * up + vh * ((sh - mu * g_dt).clamp_min(0.0) / sh.clamp_min(1e-30))
         return v
 
     def _splat_shape(self, deform, rot, ep: Episode) -> tuple[torch.Tensor, torch.Tensor]:
