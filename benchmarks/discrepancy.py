@@ -135,12 +135,7 @@ def load_world(world_config: str | None = None, effects_config: str | None = Non
 
     cfg = load_world_config(world_config) if world_config else load_world_config()
     if effects_config:
-        ref = Path(effects_config)
-        if not ref.is_file():
-            ref = Path(__file__).resolve().parents[1] / "config" / "world" / f"{effects_config}.yaml"
-        if not ref.is_file():
-            raise FileNotFoundError(f"effects config '{effects_config}' not found (a YAML path or a name in config/world)")
-        cfg.effects = load_effects_config(str(ref))
+        cfg.effects = load_effects_config(effects_config)  # resolves names in config/world
         cfg.validate()
     return cfg
 

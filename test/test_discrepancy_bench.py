@@ -72,5 +72,5 @@ def test_effects_config_replaces_only_the_magnitudes():
     assert base.effects.wind.velocity == [0.0, 6.0, 0.0] and strong.effects.wind.velocity == [0.0, 8.5, 0.0]
     assert strong.effects.table_friction.friction == 0.03
     assert strong.table == base.table and strong.objects == base.objects and strong.physics == base.physics
-    with pytest.raises(FileNotFoundError, match="effects config"):
+    with pytest.raises(FileNotFoundError, match="no_such_effects"):
         load_world(effects_config="no_such_effects")
