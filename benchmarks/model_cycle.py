@@ -20,6 +20,21 @@ import argparse
 import numpy as np
 
 
+def _setup(run: str, settle_s: float, passive_friction: float):
+    """(live simulator of the run with the guard off, initial splat means [N, 3], the joint
+    vectors of descend-close-lift at the object's grasp point)."""
+    from benchmarks.bench_live import Poser, grasp_trajectory, object_grasp
+    from soma_ros.live import load_live
+
+    live = load_live(f"{run}/checkpoint.pt", f"{run}/scene", max_travel_m=0.0, settle_s=settle_s,
+                     passive_friction=passive_friction)
+    poser = Poser(live.robot, live.base_to_sim.matrix(), live.required_joints,
+                  np.asarray(live.bundle.gravity, dtype=np.float64))
+    x0 = live.snapshot()[0].means.double().numpy()
+    grasp, closing = object_grasp(x0, poser.down)
+    return live, x0, grasp_trajectory(poser, grasp, lift=0.10, above=0.10, steps=30, closing=closing)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--run", default="runs/demo", help="run folder with checkpoint.pt and scene/")
@@ -35,16 +50,7 @@ def main(argv=None) -> int:
     if args.cycles:
         return repeated(args.run, args.cycles, args.passive_friction)
 
-    from benchmarks.bench_live import Poser, grasp_trajectory, object_grasp
-    from soma_ros.live import load_live
-
-    live = load_live(f"{args.run}/checkpoint.pt", f"{args.run}/scene", max_travel_m=0.0, settle_s=args.settle_s,
-                     passive_friction=args.passive_friction)
-    poser = Poser(live.robot, live.base_to_sim.matrix(), live.required_joints,
-                  np.asarray(live.bundle.gravity, dtype=np.float64))
-    x0 = live.snapshot()[0].means.double().numpy()
-    grasp, closing = object_grasp(x0, poser.down)
-    cycle = grasp_trajectory(poser, grasp, lift=0.10, above=0.10, steps=30, closing=closing)
+    live, x0, cycle = _setup(args.run, args.settle_s, args.passive_friction)
 
     def show(tag: str, v) -> None:
         x = live.snapshot()[0].means.double().numpy()
@@ -70,16 +76,7 @@ def main(argv=None) -> int:
 def repeated(run: str, n: int, passive_friction: float = 0.5) -> int:
     """Cycles back to back (2 steps per pose); per cycle the centroid's drift from where it
     started, its height change and the farthest splat from the initial centre."""
-    from benchmarks.bench_live import Poser, grasp_trajectory, object_grasp
-    from soma_ros.live import load_live
-
-    live = load_live(f"{run}/checkpoint.pt", f"{run}/scene", max_travel_m=0.0, settle_s=2.0,
-                     passive_friction=passive_friction)
-    poser = Poser(live.robot, live.base_to_sim.matrix(), live.required_joints,
-                  np.asarray(live.bundle.gravity, dtype=np.float64))
-    x0 = live.snapshot()[0].means.double().numpy()
-    grasp, closing = object_grasp(x0, poser.down)
-    fwd = grasp_trajectory(poser, grasp, lift=0.10, above=0.10, steps=30, closing=closing)
+    live, x0, fwd = _setup(run, 2.0, passive_friction)
     cycle = fwd + fwd[::-1]
     c0 = x0.mean(0)
     print(f"{run}: {len(x0)} splats, {n} cycles of {len(cycle)} poses, 2 steps per pose, passive-object rule "

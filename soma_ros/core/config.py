@@ -186,9 +186,10 @@ class DynamicsConfig:
     ``passive_friction`` (None = off; the default, and what every training config uses):
     the *passive object* rule at the root (see :mod:`.simulator`). On a step where every
     force but gravity and the support is zero or integrated directly (``direct`` effects),
-    the network may not raise the root's horizontal speed or its upward speed, and while the object touches the support (its lowest splat within
-    ``passive_contact_m`` of its lowest height in the episode's initial state) Coulomb
-    friction with coefficient ``passive_friction`` brakes the horizontal speed.
+    the network may not raise the root's horizontal speed or its upward speed, and while
+    the object touches the support (its lowest splat within ``passive_contact_m`` of its
+    lowest height in the episode's initial state) Coulomb friction with coefficient
+    ``passive_friction`` brakes the horizontal speed.
     """
 
     accel_scale: float = 9.81
