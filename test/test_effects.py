@@ -186,6 +186,45 @@ def test_robot_coupling_form_is_physical_invariant_and_learnable():
         build_effect({"name": "robot", "form": "coupling", "prior_grip": 1.0})
 
 
+def test_robot_coupling_carry_moves_the_rest_of_the_object_with_the_grasp():
+    """``carry``: a'_i = a_i + (1 - omega_i) phi A, hand-computed on a lifted grasp."""
+    torch.manual_seed(0)
+    spec = {"name": "robot", "radius": 0.05, "hidden": 16, "form": "coupling", "prior_grip": 0.5, "carry": 0.6}
+    eff = build_effect(spec, attr_dim=5)
+    with torch.no_grad():  # k = prior everywhere, no push: the coupling alone is hand-computable
+        eff.coef_mlp[-1].weight.zero_()
+        eff.coef_mlp[-1].bias.zero_()
+    plain = build_effect({k: v for k, v in spec.items() if k != "carry"}, attr_dim=5)
+    plain.load_state_dict({k: v for k, v in eff.state_dict().items() if k != "carry_logit"})
+    cp = torch.tensor([[0.02, 0.02, 0.02]])
+    v = torch.tensor([[0.0, 0.0, 0.3]])
+    for grip in (0.0, 0.4):
+        ctx = _ctx(n=200, cp=cp, cpv=v, grip=grip)
+        a = eff(ctx).detach() / ctx.masses[:, None]
+        a0 = plain(ctx).detach() / ctx.masses[:, None]  # the coupling without the carry
+        d = (ctx.positions - cp).norm(dim=-1)
+        w = (1 - (d / 0.05) ** 2).clamp_min(0) ** 2
+        omega = w.clamp_max(1.0) * (1.0 - grip)
+        A = (omega[:, None] * a0).sum(0) / omega.sum()  # equal masses
+        expect = a0 + (1.0 - omega)[:, None] * 0.6 * A
+        assert torch.allclose(a, expect, atol=1e-5)
+        far = d > 0.05
+        assert bool(far.sum() > 10) and float(a[far, 2].min()) > 0  # the splats out of reach rise too
+        assert torch.allclose(a[far], torch.zeros(1, 3) + 0.6 * A, atol=1e-5)
+    # gripper open: exactly the plain coupling; nothing in reach: exactly zero
+    ctx = _ctx(n=200, cp=cp, cpv=v, grip=1.0)
+    assert torch.equal(eff(ctx), plain(ctx))
+    ctx = _ctx(n=200, cp=torch.tensor([[1.0, 1.0, 1.0]]), cpv=v, grip=0.0)
+    assert float(eff(ctx).abs().max()) == 0.0
+    # phi is learned: gradients reach it
+    eff(_ctx(n=200, cp=cp, cpv=v, grip=0.0)).square().sum().backward()
+    assert eff.carry_logit.grad is not None and float(eff.carry_logit.grad.abs()) > 0
+    with pytest.raises(ConfigError, match="carry"):
+        build_effect({"name": "robot", "form": "coupling", "carry": 1.0})
+    with pytest.raises(ConfigError, match="carry"):
+        build_effect({"name": "robot", "form": "mlp", "carry": 0.5})
+
+
 def test_effects_declared_zero_at_rest_are_exactly_zero_at_rest():
     """``zero_at_rest`` lets the trainer skip the frames before contact; it must hold exactly,
     whatever the (learnable) parameters."""

@@ -108,6 +108,13 @@ def test_complete_depth_maps_paper_rule():
     expect[0, 1, 1] = False
     assert torch.equal(region, expect)
     assert float(g[0, 0, 3]) == 1.5  # ground truth there is the table
+    # (e) the evaluation's region: the measured object only, minus robot pixels (and rays off the table)
+    _, _, region = complete_depth_maps(pd2, a2, gt, obj, robot, table2, region="measured")
+    expect = obj.clone()
+    expect[0, 1, 1] = False
+    assert torch.equal(region, expect)
+    with pytest.raises(ValueError, match="region"):
+        complete_depth_maps(pd2, a2, gt, obj, robot, table2, region="everything")
 
 
 def _frame_inputs():
@@ -160,10 +167,21 @@ def test_score_frame_masks_and_values():
     pd3[:, 8:24, 30:40], a3[:, 8:24, 30:40] = 1.0, 1.0
     s3 = score_frame(3, pred, pd3, a3, gt_rgb, gt_depth, obj, None, table, ["a", "b"],
                      pred_points=torch.zeros(1, 3), gt_points=torch.tensor([[0.0, 0.0, 0.5]]))
-    # region: 320 true pixels (pred table 1.5 vs gt 1.0: |0.5|) + 160 predicted pixels (1.0 vs table 1.5: 0.5)
-    assert s3.per_camera["a"]["depth_pixels"] == 480
+    # scored region: the 320 measured pixels (pred table 1.5 vs gt 1.0: |0.5|)
+    assert s3.per_camera["a"]["depth_pixels"] == 320
     assert s3.per_camera["a"]["rmse"] == pytest.approx(0.5, rel=1e-5)
-    assert s3.per_camera["a"]["abs_rel"] == pytest.approx((320 * 0.5 / 1.0 + 160 * 0.5 / 1.5) / 480, rel=1e-5)
+    assert s3.per_camera["a"]["abs_rel"] == pytest.approx(0.5, rel=1e-5)
+    # union: + 160 predicted pixels (1.0 vs table 1.5: 0.5)
+    assert s3.per_camera["a"]["depth_pixels_union"] == 480
+    assert s3.per_camera["a"]["rmse_union"] == pytest.approx(0.5, rel=1e-5)
+    assert s3.per_camera["a"]["abs_rel_union"] == pytest.approx((320 * 0.5 / 1.0 + 160 * 0.5 / 1.5) / 480, rel=1e-5)
+    # an object rendered on its own pixels but also 1 cm above the table off them (say, where it lay
+    # before): the measured region is unchanged, the union dilutes: sqrt(320 * 0.2^2 / 480 + 160 * 0.01^2 / 480)
+    pd4, a4 = pd.clone(), alpha.clone()
+    pd4[:, 8:24, 30:40], a4[:, 8:24, 30:40] = 1.49, 1.0
+    s4 = score_frame(3, pred, pd4, a4, gt_rgb, gt_depth, obj, None, table, ["a", "b"])
+    assert s4.per_camera["a"]["rmse"] == pytest.approx(0.2, rel=1e-5)
+    assert s4.per_camera["a"]["rmse_union"] == pytest.approx(math.sqrt((320 * 0.04 + 160 * 1e-4) / 480), rel=1e-4)
     assert s3.chamfer == pytest.approx(0.5)
     with pytest.raises(ValueError, match="camera names"):
         score_frame(3, pred, pd, alpha, gt_rgb, gt_depth, obj, robot, table, ["a"])
@@ -173,7 +191,8 @@ def test_aggregation_over_frames_and_episodes():
     def fs(frame, psnr_a, psnr_b, rmse, chamfer):
         f = FrameScores(frame=frame, chamfer=chamfer)
         for cam, p in (("a", psnr_a), ("b", psnr_b)):
-            f.per_camera[cam] = {"psnr": p, "ssim": 0.5, "lpips": 0.1, "abs_rel": rmse / 2, "rmse": rmse}
+            f.per_camera[cam] = {"psnr": p, "ssim": 0.5, "lpips": 0.1, "abs_rel": rmse / 2, "rmse": rmse,
+                                 "rmse_union": 2 * rmse}
         return f
 
     frames = [fs(1, 20.0, 30.0, 0.1, 0.01), fs(2, 10.0, math.inf, 0.3, 0.03), fs(3, 40.0, 20.0, math.nan, 0.02)]
@@ -184,6 +203,7 @@ def test_aggregation_over_frames_and_episodes():
     # RMSE: NaN images (empty region) left out: (0.1 + 0.1 + 0.3 + 0.3) / 4
     assert e["rmse"] == pytest.approx(0.2) and e["n_undefined"]["rmse"] == 2
     assert e["chamfer"] == pytest.approx(0.02)
+    assert e["rmse_union"] == pytest.approx(0.4)  # the extra metrics aggregate the same way
     assert e["per_camera"]["a"]["psnr"] == pytest.approx(70 / 3)
     assert e["frames"] == 3
     # split: mean of the episode means (not of the frames)

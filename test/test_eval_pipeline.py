@@ -130,20 +130,24 @@ def test_static_numbers_match_an_independent_computation(bench_run):
     init = ctx.store.initial_splats(name)
     gt = read_ground_truth_points(ctx.store.refs[name].bag)
     assert gt.shape == (10, 25, 3)  # MuJoCo rope: 25 vertices
-    psnrs, rmses, chamfers = [], [], []
+    psnrs, rmses, rmses_u, chamfers = [], [], [], []
     for t in range(1, ep.num_frames):
         cams = ep.cameras(t)
         r = render(init.means, init.covariances(), init.colors(), init.opacities, cams)
         pm, gm = M.apply_eval_masks(r.rgb, ep.rgb[t], ep.object_mask[t], ep.robot_mask[t])
         psnrs += M.psnr(pm, gm).tolist()
         tbl = table_depth(cams, ctx.scene.plane_normal, float(ctx.scene.plane_offset))
-        pd, gd, region = complete_depth_maps(r.depth, r.alpha, ep.depth[t], ep.object_mask[t], ep.robot_mask[t], tbl)
+        pd, gd, region = complete_depth_maps(r.depth, r.alpha, ep.depth[t], ep.object_mask[t], ep.robot_mask[t], tbl,
+                                             region="measured")
         rmses += M.depth_rmse(pd, gd, region).tolist()
+        _, _, union = complete_depth_maps(r.depth, r.alpha, ep.depth[t], ep.object_mask[t], ep.robot_mask[t], tbl)
+        rmses_u += M.depth_rmse(pd, gd, union).tolist()
         chamfers.append(chamfer_distance(init.means, torch.from_numpy(gt[t])))
     fin = [p for p in psnrs if math.isfinite(p)]
     assert ep_res["frames"] == ep.num_frames - 1
     assert ep_res["psnr"] == pytest.approx(float(np.mean(fin)), rel=1e-5)
     assert ep_res["rmse"] == pytest.approx(float(np.nanmean(rmses)), rel=1e-5)
+    assert ep_res["rmse_union"] == pytest.approx(float(np.nanmean(rmses_u)), rel=1e-5)
     assert ep_res["chamfer"] == pytest.approx(float(np.mean(chamfers)), rel=1e-6)
     assert ep_res["per_frame"]["chamfer"] == pytest.approx(chamfers, rel=1e-6)
     # one episode per split: the split mean is that episode's mean

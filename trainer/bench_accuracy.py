@@ -64,7 +64,7 @@ from .baselines import (
 )
 from .config import TrainConfig, load_train_config
 from .evaluate import EvalConfig, EvalContext, METRIC_LABELS, evaluate_models, format_metric
-from .evaluate_metrics import METRICS, EvalMetricsConfig
+from .evaluate_metrics import EXTRA_METRICS, METRICS, EvalMetricsConfig
 
 __all__ = [
     "OBJECTS",
@@ -395,6 +395,12 @@ def table_markdown(table: dict, bench: BenchConfig, meta: dict) -> str:
                 lines.append(f"- {c['metric'].upper()}: full {format_metric(c['metric'], c['full'])} vs {c['baseline']} "
                              f"{format_metric(c['metric'], c['baseline_value'])}: delta {c['delta']:+.4f}{unit} "
                              f"({100 * c['relative']:+.1f} %) -> {verdict}")
+            un = om.get("depth_union", {})
+            if un:
+                lines.append("- depth RMSE over the union of measured and rendered object (reported, not the "
+                             "headline: trainer/evaluate_metrics.py): " + ", ".join(
+                                 f"{v} {format_metric('rmse', un[v].get('test', {}).get('rmse_union'))}"
+                                 for v in ("full", "static", "state_only") if v in un))
             lines.append("")
     lines.append("Metrics: " + "; ".join(f"{k}: {v}" for k, v in meta.get("protocol", {}).items()))
     lines.append("")
@@ -487,6 +493,7 @@ def run_bench(bench: BenchConfig, out: Path, objects: Optional[Sequence[str]] = 
                 models[v] = load_model(runs / v / "checkpoint.pt")
         t_eval = time.time()
         table[obj] = {v: {} for v in bench.variants}
+        union = {v: {} for v in bench.variants}  # depth over measured | rendered object (EXTRA_METRICS)
         n_eps = {}
         for split in SPLITS:
             log(f"[{obj}] evaluating {len(models)} variants on the {split} episodes")
@@ -494,12 +501,14 @@ def run_bench(bench: BenchConfig, out: Path, objects: Optional[Sequence[str]] = 
                                   log=lambda s: log(f"[{obj}] {s}"))
             for v, r in res.items():
                 table[obj][v][split] = {m: r["mean"].get(m) for m in METRICS}
+                union[v][split] = {m: r["mean"].get(m) for m in EXTRA_METRICS}
                 n_eps[split] = r["mean"]["episodes"]
         steps["eval"] = {"seconds": round(time.time() - t_eval, 1)}
         meta["objects"][obj] = {"steps": steps, "episodes": n_eps, "seconds": round(time.time() - t_obj, 1),
                                 "finished": time.strftime("%Y-%m-%d %H:%M:%S"),
                                 "train_configs": {v: c.to_dict() for (o, v), c in train_cfgs.items() if o == obj},
-                                "data": str(data), "comparison_test": comparison(table, obj)}
+                                "data": str(data), "comparison_test": comparison(table, obj),
+                                "depth_union": union}
         log(f"[{obj}] done in {(time.time() - t_obj) / 60:.1f} min")
         meta["wall_seconds"] = round(time.time() - t_start, 1)
         meta["finished"] = time.strftime("%Y-%m-%d %H:%M:%S")

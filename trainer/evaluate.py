@@ -77,7 +77,9 @@ PROTOCOL = {
     "images": "rendered over black vs GT x object mask, both x (1 - robot mask), whole image; PSNR, SSIM "
               "(11x11 Gaussian), LPIPS (AlexNet); +inf PSNR (both black) left out",
     "depth": "paper rule: masked-out pixels take the table-plane depth; prediction rendered over the table "
-             "(D + (1 - alpha) table); scored on (GT object | rendered alpha > 0.5) & ~robot; metres",
+             "(D + (1 - alpha) table); scored on the measured object's valid pixels & ~robot (the same pixels "
+             "for every model); metres. abs_rel_union / rmse_union in metrics.json: scored on (GT object | "
+             "rendered alpha > 0.5) & ~robot",
     "chamfer": "all simulated splat means vs the ground-truth object points (/world/object_points, evaluation "
                "only), 0.5 (mean a->b + mean b->a) nearest-neighbour distance, metres",
     "aggregation": "per episode: mean over scored frames and cameras; per split: mean over episodes",

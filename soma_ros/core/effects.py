@@ -392,6 +392,18 @@ class RobotForce(Effect):
     splat: a motionless closed gripper cannot lift the object, and the force has no
     preferred world direction. The learned logit of k is added to a prior that goes from
     logit(``prior_open``) with the gripper open to logit(``prior_grip``) closed.
+
+    ``carry`` (form coupling; 0 = off): the grasp carries the object. A splat's grasp
+    weight is omega_i = min(1, sum_j w_ij) (1 - c) with c the gripper state (1 open), and
+    every splat gets the fraction (1 - omega_i) of the grasped splats' mass-weighted mean
+    acceleration A times phi, a learned fraction that starts at ``carry``:
+
+        a'_i = a_i + (1 - omega_i) phi A,   A = sum_i omega_i m_i a_i / sum_i omega_i m_i
+
+    so with a closed gripper the rest of the object follows the grasped part (the tension
+    of a rope or cloth that a gripper lifts or drags), which the per-splat coupling alone
+    leaves to the network; the grasped splats themselves keep their own a_i. With the
+    gripper open or nothing in reach it is exactly zero.
     """
 
     FEATURES = 11  # + attr_dim (form mlp)
@@ -409,6 +421,7 @@ class RobotForce(Effect):
         form: str = "mlp"
         prior_grip: float = 0.25  # form coupling: initial k with the gripper closed (fraction of dv per step)
         prior_open: Optional[float] = None  # form coupling: initial k with the gripper open (None: prior_grip)
+        carry: float = 0.0  # form coupling: initial fraction phi of the grasp's acceleration the object takes (0 = off)
 
     def __init__(self, params, *, attr_dim: int = 0) -> None:
         super().__init__(params, attr_dim=attr_dim)
@@ -422,6 +435,8 @@ class RobotForce(Effect):
             v = getattr(params, name)
             if v is not None and not 0.0 < v < 1.0:
                 raise ConfigError(f"effect robot: {name} must be in (0, 1), got {v}")
+        if not 0.0 <= params.carry < 1.0 or (params.carry > 0 and params.form != "coupling"):
+            raise ConfigError(f"effect robot: carry must be in [0, 1) and needs form coupling, got {params.carry}")
         h = params.hidden
         if params.form == "coupling":
             layers = [nn.Linear(self.COUPLING_FEATURES + attr_dim, h), nn.SiLU()]
@@ -436,6 +451,8 @@ class RobotForce(Effect):
             k_open = params.prior_grip if params.prior_open is None else params.prior_open
             self._logit_closed = logit(params.prior_grip)
             self._logit_open = logit(k_open)
+            if params.carry > 0:
+                self.carry_logit = nn.Parameter(torch.tensor(logit(params.carry)))
             return
         fin = self.FEATURES + attr_dim
         edge = [nn.Linear(fin, h), nn.SiLU()]
@@ -526,6 +543,11 @@ class RobotForce(Effect):
         acc = out.index_add(0, i, acc_e)
         wsum = out.new_zeros((out.shape[0],)).index_add_(0, i, w[:, 0])
         acc = acc / wsum.clamp_min(1.0)[:, None]
+        if p.carry > 0:
+            omega = wsum.clamp_max(1.0) * (1.0 - ctx.gripper.reshape(()).to(acc.dtype))  # [N] grasp weight
+            wm = omega * ctx.masses
+            a_grasp = (wm[:, None] * acc).sum(0) / wm.sum().clamp_min(1e-30)  # [3]; 0 when nothing is grasped
+            acc = acc + ((1.0 - omega) * torch.sigmoid(self.carry_logit))[:, None] * a_grasp
         return ctx.masses[:, None] * acc
 
 
