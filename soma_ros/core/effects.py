@@ -394,16 +394,20 @@ class RobotForce(Effect):
     logit(``prior_open``) with the gripper open to logit(``prior_grip``) closed.
 
     ``carry`` (form coupling; 0 = off): the grasp carries the object. A splat's grasp
-    weight is omega_i = min(1, sum_j w_ij) (1 - c) with c the gripper state (1 open), and
-    every splat gets the fraction (1 - omega_i) of the grasped splats' mass-weighted mean
-    acceleration A times phi, a learned fraction that starts at ``carry``:
+    weight is omega_i = min(1, sum_j w_ij) (1 - c) with c the gripper state (1 open); the
+    grasp moves at u_G, the omega m-weighted mean over the splats of their control points'
+    (w-weighted) velocity; the object moves at v_bar, its mass-weighted mean velocity. Every
+    splat gets the fraction (1 - omega_i) of
 
-        a'_i = a_i + (1 - omega_i) phi A,   A = sum_i omega_i m_i a_i / sum_i omega_i m_i
+        A = phi s (u_G - v_bar) / dt,    a'_i = a_i + (1 - omega_i) A,
 
-    so with a closed gripper the rest of the object follows the grasped part (the tension
-    of a rope or cloth that a gripper lifts or drags), which the per-splat coupling alone
-    leaves to the network; the grasped splats themselves keep their own a_i. With the
-    gripper open or nothing in reach it is exactly zero.
+    with s = max_i omega_i the grasp's strength and phi in (0, 1) a learned fraction that
+    starts at ``carry``. So with a closed gripper the rest of the object follows the grasped
+    part (the tension of a rope or cloth that a gripper lifts or drags), which the per-splat
+    coupling alone leaves to the network, while the grasped splats keep their own a_i. Like
+    k it is dissipative: it removes a fraction of the object's velocity relative to the grasp
+    each step (never more), so a motionless closed gripper brings the object to rest, not
+    into a drift. With the gripper open or nothing in reach it is exactly zero.
     """
 
     FEATURES = 11  # + attr_dim (form mlp)
@@ -546,8 +550,11 @@ class RobotForce(Effect):
         if p.carry > 0:
             omega = wsum.clamp_max(1.0) * (1.0 - ctx.gripper.reshape(()).to(acc.dtype))  # [N] grasp weight
             wm = omega * ctx.masses
-            a_grasp = (wm[:, None] * acc).sum(0) / wm.sum().clamp_min(1e-30)  # [3]; 0 when nothing is grasped
-            acc = acc + ((1.0 - omega) * torch.sigmoid(self.carry_logit))[:, None] * a_grasp
+            cpv_i = out.index_add(0, i, w * cpv) / wsum.clamp_min(1e-30)[:, None]  # [N, 3] control points' velocity
+            u_g = (wm[:, None] * cpv_i).sum(0) / wm.sum().clamp_min(1e-30)  # [3] the grasp's velocity
+            v_bar = (ctx.masses[:, None] * ctx.velocities).sum(0) / ctx.masses.sum().clamp_min(1e-30)  # [3]
+            a_carry = torch.sigmoid(self.carry_logit) * omega.max() * (u_g - v_bar) / float(ctx.dt)
+            acc = acc + (1.0 - omega)[:, None] * a_carry
         return ctx.masses[:, None] * acc
 
 
