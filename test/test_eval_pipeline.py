@@ -14,7 +14,8 @@ import torch
 
 from soma_ros.core import metrics as M
 from soma_ros.core.render import render
-from trainer.bench_accuracy import BenchConfig, TrainSection, WorldSection, run_bench, variant_train_config
+from soma_ros.core.config import ConfigError
+from trainer.bench_accuracy import BenchConfig, TrainSection, WorldSection, load_bench_config, run_bench, variant_train_config
 from trainer.evaluate_metrics import METRICS, chamfer_distance, complete_depth_maps, table_depth
 
 torch.set_num_threads(1)
@@ -96,6 +97,19 @@ def test_variant_configs_differ_only_as_documented():
     assert "robot" not in eff and "wind" in eff and "robot" in [e.name for e in full.model_config().effects]
     for c in (img, nomrt, so):
         assert c.data == full.data and c.scene == full.scene and c.optim == full.optim
+    # per-object effect parameters (the tiny preset: no carry on cloth), in every variant that has the effect
+    def robot(cfg):
+        return [e for e in cfg.model_config().effects if e.name == "robot"][0].params
+    tiny = load_bench_config("tiny")
+    assert tiny.train.effect_params == {"cloth": {"robot": {"carry": 0.0}}}
+    assert robot(variant_train_config(tiny, "rope", "full"))["carry"] == 0.5
+    for v in ("full", "img_only", "no_mrt"):
+        c = variant_train_config(tiny, "cloth", v)
+        assert robot(c)["carry"] == 0.0 and robot(c)["form"] == "coupling"
+        assert c.model_overrides["normalizer"] == {"mode": "fixed"}
+    tiny.train.effect_params = {"cloth": {"tornado": {"x": 1}}}
+    with pytest.raises(ConfigError, match="tornado"):
+        variant_train_config(tiny, "cloth", "full")
 
 
 def test_bench_never_selects_on_the_test_split():

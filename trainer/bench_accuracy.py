@@ -104,10 +104,12 @@ class WorldSection:
 class TrainSection:
     """``config``: the train config every learned variant starts from (``config/train/<name>``);
     ``overrides``: merged over it for every variant (the variant's own differences are applied
-    after, see :func:`variant_train_config`)."""
+    after, see :func:`variant_train_config`); ``effect_params``: per object, parameters of the
+    model's effects to change, ``{object: {effect name: {param: value}}}``."""
 
     config: str = "tiny"
     overrides: dict = field(default_factory=dict)
+    effect_params: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -191,6 +193,15 @@ def variant_train_config(bench: BenchConfig, obj: str, variant: str) -> TrainCon
         raise ValueError(f"variant '{variant}' is not trained by `soma train` (trained: {', '.join(TRAINED_VARIANTS)})")
     base = _merge(bench.train.overrides, {"object": obj, "name": f"{bench.name}_{obj}_{variant}"})
     cfg = load_train_config(bench.train.config, overrides=base)
+    changes = bench.train.effect_params.get(obj) or {}
+    if changes:
+        effects = [e.to_yaml_dict() for e in cfg.model_config().effects]
+        missing = set(changes) - {e["name"] for e in effects}
+        if missing:
+            raise ConfigError(f"train.effect_params.{obj}: the model has no effect {', '.join(sorted(missing))}")
+        effects = [_merge(e, changes.get(e["name"], {})) for e in effects]
+        base = _merge(base, {"model_overrides": _merge(cfg.model_overrides, {"effects": effects})})
+        cfg = load_train_config(bench.train.config, overrides=base)
     if variant == "full":
         return cfg
     if variant == "img_only":
@@ -203,7 +214,7 @@ def variant_train_config(bench: BenchConfig, obj: str, variant: str) -> TrainCon
         effects = [e.to_yaml_dict() for e in cfg.model_config().effects if e.name != "robot"]
         if not any(e["name"] == "wind" for e in effects):
             effects.append({"name": "wind"})
-        over = {"model_overrides": _merge(cfg.model_overrides, {"effects": effects})}
+        over = {"model_overrides": {"effects": effects}}
     return load_train_config(bench.train.config, overrides=_merge(base, over))
 
 
