@@ -57,8 +57,21 @@ def test_velocity_limits_by_hand():
     # untouched (no non-reference force at all): a rising object slows down at least at |g|
     assert torch.allclose(pr(v(0, 0, 0.5), v(0, 0, 0.5), None, air, untouched=True), v(0, 0, 0.5 - G_DT), atol=1e-6)
     assert torch.equal(pr(v(0, 0, 0.2), v(0, 0, 0.3), None, air, untouched=True), v(0, 0, 0))
-    # on the table, vertical motion down stays the network's (friction is horizontal only)
-    assert torch.equal(pr(v(0, 0, 0), v(0, 0, -0.3), None, s0), v(0, 0, -0.3))
+    # on the table the support stops motion into it: every splat at its resting height (f = 1)
+    assert torch.equal(pr(v(0, 0, 0), v(0, 0, -0.3), None, s0), v(0, 0, 0))
+    assert torch.allclose(pr(v(0, 0, 0), v(0, 0, 0), v(0, 0, -9.0), s0), v(0, 0, 0))  # a gripper pressing down
+    # ... partly: a fraction f of the mass at its resting height keeps (1 - f) of the downward speed
+    h0 = s0.positions[0][:, 2]
+    low = h0 < torch.quantile(h0, 0.25)  # the lowest quarter stays, the rest is 5 cm up
+    part = dataclasses.replace(s0, positions=[torch.where(low[:, None], s0.positions[0],
+                                                          s0.positions[0] + torch.tensor([0.0, 0.0, 0.05]))]
+                               + list(s0.positions[1:]))
+    f = float((s0.episode.masses[0] * low).sum() / s0.episode.masses[0].sum())
+    assert torch.allclose(pr(v(0, 0, 0), v(0, 0, -0.3), None, part), v(0, 0, -0.3 * (1 - f)), atol=1e-6)
+    # an object sunk into the table is pushed back up by half its depth below resting - contact per
+    # step, at most at |g| dt: 1.5 cm -> 0.5 * 0.005 * 30 m/s; 4 cm -> |g| dt
+    assert torch.allclose(pr(v(0, 0, 0), v(0, 0, -0.1), None, _lifted(s0, -0.015)), v(0, 0, 0.5 * 0.005 * 30), atol=1e-5)
+    assert torch.allclose(pr(v(0, 0, 0), v(0, 0, -0.1), None, _lifted(s0, -0.04)), v(0, 0, G_DT), atol=1e-5)
 
 
 def test_untouched_slide_stops_and_rest_is_kept_exactly():

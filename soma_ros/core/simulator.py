@@ -819,7 +819,12 @@ class Simulator(nn.Module):
            down at least as fast as under gravity). Falling and slowing down are the network's;
         2. the direct effects' acceleration is added (robot coupling, wind);
         3. while the object rests on the support (its lowest splat within ``passive_contact_m``
-           of its lowest height in the episode's initial state): Coulomb friction takes
+           of its lowest height in the episode's initial state): the support takes the fraction
+           f of a downward v_u, f the mass fraction of splats at or below their own resting
+           height (+ ``passive_contact_m``), so a closed gripper pressing a lying object down
+           does not push it through the table while a hanging one still comes down onto it;
+           an object more than half of which lies deeper than that is pushed back up by half its
+           median depth per step, at most at |g| dt; and Coulomb friction takes
            mu |g| dt off |v_h|, down to 0 (a direct push weaker than mu |g| moves nothing, a
            stronger one accelerates by the excess).
 
@@ -843,14 +848,26 @@ class Simulator(nn.Module):
         v = vh1 + torch.minimum(vu1, up_cap) * up
         if a_direct is not None:
             v = v + float(ep.scene.dt) * a_direct
-        mu = float(dyn.passive_friction)
-        if mu > 0:
-            lowest = (state.positions[0] @ up + d).min()
-            rest_lowest = (ep.rest[0] @ up + d).min()
-            if bool(lowest <= rest_lowest + dyn.passive_contact_m):
-                vu, vh = parts(v)
+        height = state.positions[0] @ up + d  # [N0]
+        rest_height = ep.rest[0] @ up + d
+        if bool(height.min() <= rest_height.min() + dyn.passive_contact_m):
+            vu, vh = parts(v)
+            # the support: the mass fraction f of the splats at (or below) their resting height
+            # cannot be pushed on into the table, so the object's downward speed keeps (1 - f)
+            m0 = ep.masses[0]
+            f = (m0 * (height <= rest_height + dyn.passive_contact_m).to(m0.dtype)).sum() / m0.sum().clamp_min(1e-30)
+            vu = torch.where(vu < 0, vu * (1.0 - f), vu)
+            # and it pushes back an object sunk into it: half the median depth below the
+            # splats' resting heights per step, when more than half of it is below them
+            sunk = torch.median(rest_height - dyn.passive_contact_m - height)
+            if bool(sunk > 0):  # at most |g| dt: the untouched cap takes it off again the next step
+                push = (0.5 * sunk / float(ep.scene.dt)).clamp_max(g_dt)
+                vu = torch.maximum(vu, push.reshape(1, 1).to(vu))
+            mu = float(dyn.passive_friction)
+            if mu > 0:
                 sh = vh.norm(dim=-1, keepdim=True)
-                v = vu * up + vh * ((sh - mu * g_dt).clamp_min(0.0) / sh.clamp_min(1e-30))
+                vh = vh * ((sh - mu * g_dt).clamp_min(0.0) / sh.clamp_min(1e-30))
+            v = vu * up + vh
         return v
 
     def _splat_shape(self, deform, rot, ep: Episode) -> tuple[torch.Tensor, torch.Tensor]:
