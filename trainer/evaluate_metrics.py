@@ -27,7 +27,7 @@ depth primitives are :mod:`soma_ros.core.metrics`):
   the rule this harness used first. Its mean is over a region the prediction
   chooses: pixels a model renders onto the table where the object lay, at the
   error of the object's thickness, dilute it. On a held-out rope lift it ranked
-  a model that leaves the rope on the table above one whose 3D error is 2.5x
+  a model that leaves the rope on the table above one whose 3D error is 4x
   smaller (README "Accuracy"), so it is not the headline number; the training
   loss still uses it (it charges splats rendered where there is no object).
 * **Chamfer** (metres): between all simulated splat means (not only the visible
