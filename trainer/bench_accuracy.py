@@ -200,7 +200,7 @@ def variant_train_config(bench: BenchConfig, obj: str, variant: str) -> TrainCon
         if missing:
             raise ConfigError(f"train.effect_params.{obj}: the model has no effect {', '.join(sorted(missing))}")
         effects = [_merge(e, changes.get(e["name"], {})) for e in effects]
-        base = _merge(base, {"model_overrides": _merge(cfg.model_overrides, {"effects": effects})})
+        base = _merge(base, {"model_overrides": {"effects": effects}})
         cfg = load_train_config(bench.train.config, overrides=base)
     if variant == "full":
         return cfg

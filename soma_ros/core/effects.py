@@ -425,7 +425,7 @@ class RobotForce(Effect):
         form: str = "mlp"
         prior_grip: float = 0.25  # form coupling: initial k with the gripper closed (fraction of dv per step)
         prior_open: Optional[float] = None  # form coupling: initial k with the gripper open (None: prior_grip)
-        carry: float = 0.0  # form coupling: initial fraction phi of the grasp's acceleration the object takes (0 = off)
+        carry: float = 0.0  # form coupling: initial fraction phi of the velocity relative to the grasp removed per step (0 = off)
 
     def __init__(self, params, *, attr_dim: int = 0) -> None:
         super().__init__(params, attr_dim=attr_dim)
