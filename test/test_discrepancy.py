@@ -65,17 +65,23 @@ def test_table_friction_opposes_tangential_velocity_only_in_contact():
     assert float(eff2(_ctx(pos, vel))[0] @ vel[0]) > 0
 
 
-def test_gripper_slip_acts_on_held_material_only_when_closed():
-    eff = build_effect({"name": "gripper_slip", "params": {"coupling": 2.0, "sag": 0.5}})
-    pos = torch.tensor([[0.0, 0.0, 0.05], [0.2, 0.0, 0.05]])
-    vel = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
-    cp, cpv = torch.tensor([[0.0, 0.0, 0.05]]), torch.tensor([[0.0, 0.0, 0.2]])
-    f = eff(_ctx(pos, vel, cp, cpv, 0.0))
-    only_c = build_effect({"name": "gripper_slip", "params": {"coupling": 2.0}})(_ctx(pos, vel, cp, cpv, 0.0))
-    assert float(only_c[0, 2]) > 0 and torch.allclose(only_c[1], torch.zeros(3))  # follows the gripper
-    only_s = build_effect({"name": "gripper_slip", "params": {"sag": 0.5}})(_ctx(pos, vel, cp, cpv, 0.0))
-    assert float(only_s[0, 2]) < 0  # slides down out of the grasp
+def test_gripper_slip_acts_on_the_held_object_as_a_whole_only_when_closed():
+    pos = torch.tensor([[0.0, 0.0, 0.05], [0.2, 0.0, 0.05], [0.3, 0.0, 0.05]])
+    vel = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.3], [0.0, 0.0, 0.3]])  # v_bar = (0, 0, 0.2)
+    cp, cpv = torch.tensor([[0.0, 0.0, 0.05]]), torch.tensor([[0.0, 0.0, 0.5]])
+    ctx = _ctx(pos, vel, cp, cpv, 0.0)
+    # hold: every splat, the far ones too, gets hold s (u_G - v_bar) / dt; s = 1 at the control point
+    f = build_effect({"name": "gripper_slip", "params": {"hold": 0.2}})(ctx)
+    want = 0.01 * 0.2 * (0.5 - 0.2) * 30.0
+    torch.testing.assert_close(f, torch.tensor([0.0, 0.0, want]).expand(3, 3))
+    slip = build_effect({"name": "gripper_slip", "params": {"hold": -0.2}})(ctx)
+    assert float(slip[2, 2]) < 0  # < 0: the object lags the lifting gripper
+    # sag: the held object slides down, s-weighted (half closed: s = 0.5)
+    sag = build_effect({"name": "gripper_slip", "params": {"sag": 0.5}})(_ctx(pos, vel, cp, cpv, 0.5))
+    torch.testing.assert_close(sag, (0.01 * 0.5 * 0.5 * G).expand(3, 3))
+    eff = build_effect({"name": "gripper_slip", "params": {"hold": 2.0, "sag": 0.5}})
     assert torch.count_nonzero(eff(_ctx(pos, vel, cp, cpv, 1.0))) == 0  # gripper open: nothing held
+    assert torch.count_nonzero(eff(_ctx(pos, vel, cp + 1.0, cpv, 0.0))) == 0  # closed, nothing in reach
     assert torch.count_nonzero(eff(_ctx(pos, vel))) == 0  # no robot
 
 
@@ -166,6 +172,10 @@ def test_workflow_end_to_end_negative_control(clean_run):
     assert [r["name"] for r in disk["ranking"]] and {r["name"] for r in disk["ranking"]} == set(cfg.candidates)
     for r in disk["ranking"]:
         assert math.isfinite(r["explained_fraction"]) and r["uncertainty"] >= 0 and r["explained_fraction"] <= 1
+    # the own-error control ran on the model's training data (here the measured data itself):
+    # every candidate was calibrated there first
+    assert disk["decision"]["calibrated_on_reference"] and len(disk["episodes"]["reference"]) == 4
+    assert all("reference_parameters" in f for f in disk["fits"].values())
     ex = [r["explained_fraction"] for r in disk["ranking"]]
     assert ex == sorted(ex, reverse=True)
     for k in ("gap_before", "gap_after"):
@@ -192,3 +202,55 @@ def test_workflow_end_to_end_negative_control(clean_run):
     for name in ("table_friction", "gripper_slip", "mass_scale"):
         sim.add_effect({"name": name})
     np.testing.assert_array_equal(residual_per_frame(sim, ob, ctx.scene), r0)
+
+
+def test_calibration_on_the_models_own_conditions_separates_its_error_from_the_new_effect():
+    """The own-error control of rank_candidates on a synthetic world: the model misses a wind
+    a0 on ANY data (its own error), the new data has a0 + a1. Calibrated on the reference
+    (a0 only), the wind candidate is named on the new data for a1 alone, and on data like the
+    reference it explains nothing; without the calibration, a0 alone is "named" (the error the
+    control exists for)."""
+    import copy
+
+    from soma_ros.core.config import load_model_config
+    from soma_ros.core.scenes import synthetic_rope
+    from soma_ros.core.simulator import SceneContext, Simulator
+    from trainer.discrepancy import EpisodeObs, _rollout, rank_candidates, residual_per_frame
+
+    torch.manual_seed(0)
+    scene = SceneContext.table()
+    sim = Simulator(load_model_config("cpu")).eval()
+    T, frames = 13, [4, 8, 12]
+
+    def episodes(accel, seeds, split):
+        world = copy.deepcopy(sim)
+        world.add_effect({"name": "wind", "direct": True, "accel": accel})
+        out = []
+        for s in seeds:
+            sp = synthetic_rope(300, seed=s, center=(0.0, 0.0, 0.3))  # in the air: the wind moves it
+            world.init_state(sp, scene)
+            ob = EpisodeObs(f"e{s}", None, split, scene.dt, torch.full((T, 4, 3), 3.0), torch.ones(T), sp, frames, [])
+            with torch.no_grad():
+                ob.points = [st.means[::3].clone() for _, st in _rollout(world, ob, scene, frames)]
+            out.append(ob)
+        return out
+
+    sim.init_state(synthetic_rope(300, seed=1, center=(0.0, 0.0, 0.3)), scene)  # bind
+    a0, a01 = [0.0, 0.6, 0.0], [0.6, 0.6, 0.0]
+    ref = episodes(a0, [1, 2], "train")
+    cfg = load_discrepancy_config("fast", {"candidates": ["wind", "linear_drag"], "fit_iters": 12,
+                                           "line_search": [0.5, 1.0, 1.5], "bootstrap": 300})
+    quiet = lambda *a: None  # noqa: E731
+    for accel, want in ((a01, "wind"), (a0, "none")):
+        fit, held = episodes(accel, [3, 4], "train"), episodes(accel, [5, 6], "test")
+        base = [residual_per_frame(sim, o, scene) for o in held]
+        named, ranking, decision, fits, _, _ = rank_candidates(sim, fit, held, base, scene, cfg, quiet, ref)
+        assert named == want, (accel, decision, ranking)
+        assert decision["calibrated_on_reference"]
+        assert fits["wind"]["reference_parameters"]["accel"][1] > 0.3  # the calibration took up a0
+        if want == "wind":
+            assert fits["wind"]["parameters"]["accel"][0] > 0.3  # ... and the re-fit the new a1
+    # without the calibration the model's own error (a0) is "named" on data without a new effect
+    fit, held = episodes(a0, [3, 4], "train"), episodes(a0, [5, 6], "test")
+    base = [residual_per_frame(sim, o, scene) for o in held]
+    assert rank_candidates(sim, fit, held, base, scene, cfg, quiet)[0] == "wind"

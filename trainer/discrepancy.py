@@ -28,13 +28,31 @@ is computed by the evaluation engineer's scorer, :mod:`trainer.evaluate`):
    a network trained without the term barely responds to it as a feature
    alone) (zero-initialised: nothing changes until fitted) and
    ONLY its parameters are fitted by Adam through the simulator on the *fit*
-   episodes (3D point residual loss, full open-loop rollouts). On the *held-out*
-   episodes, explained = 1 - sum residual_with / sum residual_without (per
-   (episode, frame) 3D residual). Uncertainty: a hierarchical bootstrap
+   episodes (3D point residual loss, full open-loop rollouts; each parameter's
+   step is ``fit_lr`` times its typical magnitude, ``Effect.fit_scale``, e.g. |g|
+   for a force field, decayed by a cosine to ``fit_lr_final`` of it). On the
+   *held-out* episodes, explained = 1 - sum residual_with / sum residual_without
+   (per (episode, frame) 3D residual). Uncertainty: a hierarchical bootstrap
    (episodes, then frames within each) with all candidates on the same
-   resamples (paired). The winner is named when the lower confidence bound
-   (quantile ``alpha``) of its explained fraction exceeds ``min_explained`` AND
-   the lower bound of (winner - runner-up) exceeds 0; else ``none``.
+   resamples (paired).
+   **Own-error control**: a fitted term can also remove the model's own error,
+   which is there on any data (a model that under-lifts is "missing" a tighter
+   grip everywhere). So each candidate is first *calibrated*: fitted on episodes
+   of the conditions the model was trained in (``reference_data``; default: the
+   checkpoint's training dataset), then re-fitted from there on the measured fit
+   episodes, and explained = 1 - residual(re-fitted) / residual(calibrated) on
+   the held-out episodes: only what the new data asks of the term beyond the
+   model's own conditions counts, in either direction (a grip that slips on a
+   model that under-lifts too). Without reference data a candidate starts at 0
+   and explained is against the unchanged model. The winner is named when the
+   lower confidence bound (quantile ``alpha``) of its explained fraction exceeds
+   ``min_explained`` AND the lower bound of (winner - runner-up) exceeds 0; else
+   ``none``. After each fit, a line search on the whole fit set along the fitted
+   change (scales ``line_search`` and 0) keeps the best scale, so a fit that
+   does not lower the fit episodes' residual changes nothing.
+   All rollouts run the simulator's passive-object rule (``passive_friction``,
+   as the live node does): the learned dynamics cannot push a resting object,
+   and a candidate's push on it must beat the table's friction.
 4. **Add** the named term to the model (its fitted parameters; optional joint
    re-fit on all measured fit episodes), save DIR/model/checkpoint.pt (a run
    folder: checkpoint, scene, train_config.yaml, usable by ``soma eval``), and
@@ -91,7 +109,12 @@ class DiscrepancyConfig:
     max_points: int = 256  # observed points per frame (evenly strided subset)
     frame_stride: int = 2  # frames scored / used in the 3D loss
     fit_iters: int = 24  # Adam steps per candidate (one fit episode per step, cycling)
-    fit_lr: float = 0.05
+    fit_lr: float = 0.05  # Adam step, times each parameter's Effect.fit_scale (its typical magnitude)
+    fit_lr_final: float = 0.1  # cosine decay of the step to this fraction over fit_iters
+    line_search: list[float] = field(default_factory=lambda: [0.25, 0.5, 1.0, 1.5])  # scales of the fitted
+    # parameters tried on the whole fit set (0, the unchanged model, always is)
+    passive_friction: Optional[float] = 0.5  # the simulator's passive-object rule in every rollout, as the
+    # live node runs it (friction coefficient); None: the checkpoint's setting; < 0: off
     max_fit_episodes: int = 0  # 0 = all
     max_heldout_episodes: int = 0  # 0 = all
     bootstrap: int = 2000
@@ -99,6 +122,9 @@ class DiscrepancyConfig:
     min_explained: float = 0.1
     finetune_iters: int = 0  # extra Adam steps on the winner's parameters over the fit episodes
     direct: bool = True  # candidates are added as direct effects (explicitly integrated force); False: feature only
+    reference_data: Optional[str] = None  # the model's own-error control (decide): a dataset of the conditions
+    # the model was trained in; None: the checkpoint's training dataset when it exists; "" or "none": no control
+    reference_episodes: int = 6  # episodes of it used (evenly spaced), 0 = all
     eval_frame_stride: int = 2
     contact_sheets: bool = True
     seed: int = 0
@@ -111,8 +137,10 @@ class DiscrepancyConfig:
             raise ValueError("discrepancy: at least one candidate effect is needed")
         if self.max_points < 8 or self.frame_stride < 1 or self.fit_iters < 0 or self.bootstrap < 100:
             raise ValueError("discrepancy: max_points >= 8, frame_stride >= 1, fit_iters >= 0, bootstrap >= 100 required")
-        if not (0 < self.alpha < 0.5) or not (self.fit_lr > 0):
-            raise ValueError("discrepancy: alpha in (0, 0.5) and fit_lr > 0 required")
+        if any(not (a > 0) for a in self.line_search):
+            raise ValueError(f"discrepancy: line_search scales must be > 0, got {self.line_search}")
+        if not (0 < self.alpha < 0.5) or not (self.fit_lr > 0) or not (0 < self.fit_lr_final <= 1):
+            raise ValueError("discrepancy: alpha in (0, 0.5), fit_lr > 0 and fit_lr_final in (0, 1] required")
         return self
 
 
@@ -163,6 +191,32 @@ def _observed(ep: EpisodeData, t: int, max_points: int) -> torch.Tensor:
     return p.float()
 
 
+def episode_obs(ctx, ref, cfg: DiscrepancyConfig) -> tuple[EpisodeObs, EpisodeData]:
+    """The workflow's view of one episode of an :class:`~trainer.evaluate.EvalContext` (and the episode)."""
+    ep = ctx.store.episode(ref.name)
+    frames = list(range(cfg.frame_stride, ep.num_frames, cfg.frame_stride))
+    ob = EpisodeObs(ref.name, ref.task, ref.split, float(ep.dt), ep.control_points.float().clone(),
+                    ep.gripper.float().clone(), ctx.store.initial_splats(ref.name), frames,
+                    [_observed(ep, t, cfg.max_points) for t in frames])
+    return ob, ep
+
+
+def reference_dataset(cfg: DiscrepancyConfig, extra: dict, data: Path) -> Optional[Path]:
+    """The dataset of the own-error control: ``cfg.reference_data``, else the checkpoint's training
+    dataset (``extra["dataset"]``) when it exists and is not the measured data itself."""
+    if cfg.reference_data is not None:
+        if cfg.reference_data.strip().lower() in ("", "none"):
+            return None
+        p = Path(cfg.reference_data)
+        if not (p / "manifest.json").is_file():
+            raise FileNotFoundError(f"reference_data {p}: no manifest.json (a dataset of `soma world` / `soma capture`?)")
+        return p
+    d = extra.get("dataset")
+    if not d or not (Path(d) / "manifest.json").is_file():
+        return None
+    return Path(d)
+
+
 def point_residual(points: torch.Tensor, means: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(mean distance [] from each observed point to its nearest splat, nearest index [M],
     residual vectors observed - nearest [M, 3]); differentiable in ``means``."""
@@ -204,23 +258,26 @@ def bootstrap_explained(base: Sequence[np.ndarray], cand: dict[str, Sequence[np.
                         seed: int = 0) -> dict[str, np.ndarray]:
     """Hierarchical paired bootstrap of explained = 1 - sum(with) / sum(without).
 
-    ``base``: per held-out episode the per-frame residual without any term; ``cand[name]``:
-    the same frames with the fitted term. Resamples episodes with replacement, then frames
-    within each; every candidate uses the same resamples. Returns {name: [n] samples}."""
+    ``base``: per held-out episode the per-frame residual without the term (one list for every
+    candidate, or a dict of one per candidate); ``cand[name]``: the same frames with the fitted
+    term. Resamples episodes with replacement, then frames within each; every candidate uses the
+    same resamples. Returns {name: [n] samples}."""
     rng = np.random.default_rng(seed)
-    E = len(base)
+    bases = base if isinstance(base, dict) else {k: base for k in cand}
+    any_base = next(iter(bases.values()))
+    E = len(any_base)
     out = {k: np.empty(n) for k in cand}
     for b in range(n):
         eps = rng.integers(0, E, E)
         num = {k: 0.0 for k in cand}
-        den = 0.0
+        den = {k: 0.0 for k in cand}
         for e in eps:
-            f = rng.integers(0, len(base[e]), len(base[e]))
-            den += float(base[e][f].sum())
+            f = rng.integers(0, len(any_base[e]), len(any_base[e]))
             for k in cand:
+                den[k] += float(bases[k][e][f].sum())
                 num[k] += float(cand[k][e][f].sum())
         for k in cand:
-            out[k][b] = 1.0 - num[k] / den if den > 0 else 0.0
+            out[k][b] = 1.0 - num[k] / den[k] if den[k] > 0 else 0.0
     return out
 
 
@@ -253,7 +310,10 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
                cfg: DiscrepancyConfig, iters: int, log: Callable[[str], None] = print,
                key: Optional[str] = None) -> tuple[Simulator, list[float], dict]:
     """A copy of ``sim`` with effect ``name`` added (unless ``key`` names one already there) and
-    only that effect's parameters fitted by Adam on the 3D point residual of ``fit_obs``.
+    only that effect's parameters fitted by Adam on the 3D point residual of ``fit_obs`` (one
+    episode per step). The result is the mean of the iterates over the second half of the
+    steps (Polyak-Ruppert averaging): single-episode gradients are noisy, and the last iterate
+    of a sign-normalised optimiser wanders by about a step size per step around the optimum.
     Returns (model, per-step losses, fitted parameter values)."""
     model = copy.deepcopy(sim)
     if key is None:
@@ -267,9 +327,18 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
     model.eval()
     losses: list[float] = []
     if params and iters > 0 and fit_obs:
-        opt = torch.optim.Adam(params, lr=cfg.fit_lr)
+        eff = model.effects[key]
+        scale = getattr(eff, "fit_scale", {}) or {}
+        groups = [{"params": [p], "lr": cfg.fit_lr * float(scale.get(n, 1.0))} for n, p in eff.named_parameters()]
+        opt = torch.optim.Adam(groups, lr=cfg.fit_lr)
+        # cosine decay of every step size to fit_lr_final of its start: big steps to reach a
+        # large effect, small ones to settle on it
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: cfg.fit_lr_final + (1.0 - cfg.fit_lr_final) * 0.5
+                                                  * (1.0 + math.cos(math.pi * min(k, iters) / iters)))
         rng = np.random.default_rng(cfg.seed)
         order: list[int] = []
+        avg = [torch.zeros_like(p) for p in params]
+        n_avg = 0
         for it in range(iters):
             if not order:
                 order = list(rng.permutation(len(fit_obs)))
@@ -284,34 +353,110 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
             loss.backward()
             if all(p.grad is None or torch.isfinite(p.grad).all() for p in params):
                 opt.step()
+            sched.step()
+            if it >= iters // 2:
+                for a, p in zip(avg, params):
+                    a.add_(p.detach())
+                n_avg += 1
+        if n_avg:
+            with torch.no_grad():
+                for a, p in zip(avg, params):
+                    p.copy_(a / n_avg)
     for p in params:
         p.requires_grad_(False)
     values = {n: p.detach().cpu().reshape(-1).tolist() for n, p in model.effects[key].named_parameters()}
     return model, losses, values
 
 
+def _line_search(model: Simulator, name: str, theta0: list[torch.Tensor], obs: Sequence[EpisodeObs],
+                 scene: SceneContext, scales: Sequence[float], base: float) -> tuple[float, float]:
+    """Set effect ``name``'s parameters to theta0 + a (theta - theta0), theta their fitted values,
+    with the scale a in {0} + ``scales`` of the lowest residual sum on ``obs`` (``base``: at
+    a = 0). A fit that does not lower it is undone (a = 0); an over- or undershoot of the
+    stochastic fit is corrected. Returns (a, residual sum)."""
+    params = list(model.effects[name].parameters())
+    theta = [p.detach().clone() for p in params]
+    best_a, best = 0.0, base
+    for a in scales:
+        with torch.no_grad():
+            for p, t, t0 in zip(params, theta, theta0):
+                p.copy_(t0 + a * (t - t0))
+        r = float(sum(residual_per_frame(model, o, scene).sum() for o in obs))
+        if r < best:
+            best_a, best = float(a), r
+    with torch.no_grad():
+        for p, t, t0 in zip(params, theta, theta0):
+            p.copy_(t0 + best_a * (t - t0))
+    return best_a, best
+
+
+def _values(model: Simulator, name: str) -> dict:
+    return {n: p.detach().cpu().reshape(-1).tolist() for n, p in model.effects[name].named_parameters()}
+
+
 def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Sequence[EpisodeObs],
                     base: Sequence[np.ndarray], scene: SceneContext, cfg: DiscrepancyConfig,
-                    log: Callable[[str], None] = print):
-    """Fit every candidate alone on ``fit_obs``; explained fraction of the held-out 3D residual
-    (``base``: per held-out episode, per scored frame, without any term); bootstrap; decision.
-    Returns (named, ranking, decision, fits, fitted models, bootstrap samples)."""
+                    log: Callable[[str], None] = print, ref_obs: Sequence[EpisodeObs] = (),
+                    ref_scene: Optional[SceneContext] = None):
+    """Fit every candidate alone; its explained fraction of the held-out 3D residual; bootstrap;
+    decision. Returns (named, ranking, decision, fits, fitted models, bootstrap samples).
+
+    ``base``: per held-out episode, per scored frame, the residual of the unchanged model.
+    Without ``ref_obs``, a candidate starts at 0 and explained = 1 - residual(fitted) /
+    ``base``. With ``ref_obs`` (episodes of the conditions the model was trained in) the
+    candidate is first *calibrated* there (fitted from 0 on ``ref_obs``: the part of the
+    term that fixes the model's own error on any data, e.g. a tighter grip for a model that
+    under-lifts), then re-fitted from that on the measured fit episodes, and explained = 1 -
+    residual(re-fitted) / residual(calibrated) on the held-out episodes: what the new data
+    asks of the term beyond what the model's own conditions ask. Effect-free data asks for
+    nothing more (explained ~ 0); an effect of the opposite sign to the model's own error
+    (a slipping grip on a model that under-lifts) is still seen."""
+    ref_scene = ref_scene or scene
+    fit_base = float(sum(residual_per_frame(sim, o, scene).sum() for o in fit_obs))
+    ref_base = float(sum(residual_per_frame(sim, o, ref_scene).sum() for o in ref_obs)) if ref_obs else 0.0
+    den0 = max(sum(float(x.sum()) for x in base), 1e-12)
     cand_res: dict[str, list[np.ndarray]] = {}
+    cand_base: dict[str, list[np.ndarray]] = {}
     fits: dict[str, dict] = {}
     models: dict[str, Simulator] = {}
-    den = max(sum(float(x.sum()) for x in base), 1e-12)
     for name in cfg.candidates:
         tc = time.time()
-        model, losses, values = fit_effect(sim, name, fit_obs, scene, cfg, cfg.fit_iters, log)
+        rec: dict = {}
+        if ref_obs:  # calibration on the model's own conditions
+            calib, _, _ = fit_effect(sim, name, ref_obs, ref_scene, cfg, cfg.fit_iters, log)
+            zero = [torch.zeros_like(p) for p in calib.effects[name].parameters()]
+            a, r = _line_search(calib, name, zero, ref_obs, ref_scene, cfg.line_search, ref_base)
+            rec.update(reference_parameters=_values(calib, name), reference_explained=1.0 - r / max(ref_base, 1e-12),
+                       reference_scale=a)
+            cand_base[name] = [residual_per_frame(calib, o, scene) for o in held_obs]
+            fit_start = float(sum(residual_per_frame(calib, o, scene).sum() for o in fit_obs))
+            model, losses, _ = fit_effect(calib, name, fit_obs, scene, cfg, cfg.fit_iters, log, key=name)
+            theta0 = [p.detach().clone() for p in calib.effects[name].parameters()]
+        else:
+            model, losses, _ = fit_effect(sim, name, fit_obs, scene, cfg, cfg.fit_iters, log)
+            cand_base[name] = list(base)
+            fit_start = fit_base
+            theta0 = [torch.zeros_like(p) for p in model.effects[name].parameters()]
+        best_a, fit_with = _line_search(model, name, theta0, fit_obs, scene, cfg.line_search, fit_start)
+        values = _values(model, name)
         cand_res[name] = [residual_per_frame(model, o, scene) for o in held_obs]
-        e = 1.0 - sum(float(x.sum()) for x in cand_res[name]) / den
-        fits[name] = {"parameters": values, "fit_loss": losses, "explained_fraction": e,
-                      "seconds": round(time.time() - tc, 1)}
+        den = max(sum(float(x.sum()) for x in cand_base[name]), 1e-12)
+        num = sum(float(x.sum()) for x in cand_res[name])
+        e = 1.0 - num / den
+        rec.update(parameters=values, fit_loss=losses, explained_fraction=e,
+                   explained_vs_unchanged=1.0 - num / den0, fit_explained=1.0 - fit_with / max(fit_start, 1e-12),
+                   kept=best_a > 0, line_search_scale=best_a, seconds=round(time.time() - tc, 1))
+        fits[name] = rec
         models[name] = model
-        log(f"  candidate {name:15s} explained {e:+.3f}  params {values}  ({time.time() - tc:.0f} s)")
-    samples = bootstrap_explained(base, cand_res, cfg.bootstrap, cfg.seed)
+        msg = (f"  (calibrated {rec['reference_parameters']}, own-data explained {rec['reference_explained']:+.3f}; "
+               f"vs unchanged {rec['explained_vs_unchanged']:+.3f})" if ref_obs else "")
+        log(f"  candidate {name:15s} explained {e:+.3f}  fit {rec['fit_explained']:+.3f}"
+            f"{f' (x{best_a:g})' if best_a > 0 else ' (no change: not better on its fit episodes)'}  params {values}"
+            f"{msg}  ({time.time() - tc:.0f} s)")
+    samples = bootstrap_explained(cand_base, cand_res, cfg.bootstrap, cfg.seed)
     named, ranking, decision = decide({k: v["explained_fraction"] for k, v in fits.items()}, samples, cfg.alpha,
                                       cfg.min_explained)
+    decision["calibrated_on_reference"] = bool(ref_obs)
     log(f"  named effect: {named} ({json.dumps(_json_safe(decision))})")
     return named, ranking, decision, fits, models, samples
 
@@ -359,6 +504,9 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
     train_cfg = load_train_config(cfg_path)
     ctx = EvalContext(data, train_cfg, scene_dir, cache_dir=out / "cache")
     sim = load_checkpoint(ck)
+    if cfg.passive_friction is not None:
+        sim.config.dynamics.passive_friction = None if cfg.passive_friction < 0 else float(cfg.passive_friction)
+        sim.config.dynamics.validate()
     sim.eval()
     torch.manual_seed(cfg.seed)
     scene = ctx.scene
@@ -380,11 +528,8 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
     mcfg = EvalMetricsConfig(with_lpips=False)
     log(f"discrepancy: {len(fit)} fit + {len(held)} held-out episodes, candidates {', '.join(cfg.candidates)}")
     for ref in fit + held:
-        ep = ctx.store.episode(ref.name)
-        init = ctx.store.initial_splats(ref.name)
-        frames = list(range(cfg.frame_stride, ep.num_frames, cfg.frame_stride))
-        ob = EpisodeObs(ref.name, ref.task, ref.split, float(ep.dt), ep.control_points.float().clone(),
-                        ep.gripper.float().clone(), init, frames, [_observed(ep, t, cfg.max_points) for t in frames])
+        ob, ep = episode_obs(ctx, ref, cfg)
+        init, frames = ob.init, ob.frames
         obs[ref.name] = ob
         # -- step 1/2: resimulate, locate (per-frame, per-camera depth / image; 3D; per cluster)
         colors, opac = init.colors().float(), init.opacities.float()
@@ -425,8 +570,28 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
     held_obs = [obs[r.name] for r in held]
     base = [np.asarray(stage1[o.name]["points"]) for o in held_obs]
 
+    # ---- the own-error control: episodes of the conditions the model was trained in
+    ref_data = reference_dataset(cfg, read_checkpoint(ck)["extra"], data)
+    ref_obs: list[EpisodeObs] = []
+    ref_scene = scene
+    if ref_data is None:
+        log("  no reference data (the model's training conditions): candidates are tested on the held-out "
+            "explained fraction alone")
+    elif Path(ref_data).resolve() == Path(data).resolve():
+        log(f"  reference data = the measured data ({data}): nothing can be specific to it")
+    if ref_data is not None:
+        rctx = EvalContext(ref_data, train_cfg, scene_dir)
+        rrefs = rctx.refs
+        if cfg.reference_episodes and len(rrefs) > cfg.reference_episodes:
+            pick = np.linspace(0, len(rrefs) - 1, cfg.reference_episodes).round().astype(int)
+            rrefs = [rrefs[i] for i in pick]
+        ref_obs = [episode_obs(rctx, r, cfg)[0] for r in rrefs]
+        ref_scene = rctx.scene
+        log(f"  reference: {len(ref_obs)} episodes of {ref_data} (own-error control)")
+
     # ---- step 3: candidate fits and held-out explained fraction
-    named, ranking, decision, fits, models, samples = rank_candidates(sim, fit_obs, held_obs, base, scene, cfg, log)
+    named, ranking, decision, fits, models, samples = rank_candidates(sim, fit_obs, held_obs, base, scene, cfg, log,
+                                                                      ref_obs, ref_scene)
 
     # ---- step 4: add, (fine-tune), save, re-evaluate on the held-out episodes
     after = sim
@@ -463,7 +628,9 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
         "gap_after": gap["gap_after"],
         "decision": decision,
         "fits": {k: {kk: vv for kk, vv in v.items()} for k, v in fits.items()},
-        "episodes": {"fit": [r.name for r in fit], "heldout": [r.name for r in held]},
+        "episodes": {"fit": [r.name for r in fit], "heldout": [r.name for r in held],
+                     "reference": [o.name for o in ref_obs]},
+        "reference_data": None if ref_data is None else str(ref_data),
         "checkpoint_in": str(ck),
         "checkpoint_out": str(model_dir / "checkpoint.pt"),
         "data": str(data),

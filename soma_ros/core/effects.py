@@ -181,6 +181,10 @@ class Effect(nn.Module):
     #: the force is exactly zero whenever every splat is at rest (velocity-dependent terms):
     #: frames before the robot reaches the object stay exact no-ops (the trainer skips them)
     zero_at_rest: ClassVar[bool] = False
+    #: typical magnitude of each learnable parameter, in its unit (absent: 1): a fitter that
+    #: steps every parameter by a learning rate times this covers a comparable range of force
+    #: (the discrepancy workflow's Adam steps, :func:`trainer.discrepancy.fit_effect`)
+    fit_scale: ClassVar[dict[str, float]] = {}
 
     @dataclass
     class Params:
@@ -570,6 +574,8 @@ def near_box(points: torch.Tensor, x: torch.Tensor, r: float) -> torch.Tensor:
 class Wind(Effect):
     """Constant acceleration field (m/s^2) times mass; learnable, zero by default."""
 
+    fit_scale = {"accel": 9.81}  # m/s^2: a force field comparable to the object's weight
+
     @dataclass
     class Params:
         accel: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
@@ -607,6 +613,7 @@ class QuadraticDrag(Effect):
     """-c m |v| v (c in 1/m, learnable)."""
 
     zero_at_rest = True
+    fit_scale = {"coeff": 5.0}  # 1/m: c |v| ~ 1/s at a tabletop speed of 0.2 m/s
 
     @dataclass
     class Params:

@@ -15,13 +15,19 @@ table_friction      Coulomb-like sliding friction of the table on splats within
                     the friction coefficient the data asks for *in addition* to
                     what the model learned, so mu < 0 reads "the table is more
                     slippery than the model believes". [mu*, tau, v_eps]
-gripper_slip        the grasp: splats within ``radius`` of a robot control point
-                    while the gripper is closed (weight (1 - c_t), smooth radial
-                    cutoff) get  F = m w (-coupling (v - v_cp) + sag g).
-                    coupling* (1/s, signed): > 0 the held material follows the
-                    gripper more tightly, < 0 it lags (slips) behind it; sag*
-                    (fraction of g): the held material slides down out of the
-                    grasp under its load. [coupling*, sag*, radius]
+gripper_slip        the grasp as a whole: while the gripper is closed on the object
+                    (strength s = max_i (1 - c_t) w_i, w_i the smooth radial weight of
+                    splat i within ``radius`` of its nearest robot control point),
+                    every splat gets  F = m s (hold (u_G - v_bar) / dt + sag g),
+                    u_G the grasp's velocity (the w m-weighted mean of the control
+                    points' velocities), v_bar the object's mass-weighted mean
+                    velocity. hold* (dimensionless, signed): the fraction of the
+                    object's velocity relative to the grasp removed per step *in
+                    addition* to what the model does, > 0 a tighter grip, < 0 a grip
+                    that transmits less of the gripper's motion (slips); sag* (fraction
+                    of g): the held object slides down out of the grasp under its load.
+                    Both act on the object's mean motion (the grasp moves the object,
+                    not only the splats between the fingers). [hold*, sag*, radius]
 mass_scale          extra weight of the lifted material: F = excess m g s(d),
                     s(d) = smoothstep((d - d0) / (d1 - d0)) = 0 on the table
                     (d <= d0, where the support carries any weight, so the rest
@@ -86,11 +92,11 @@ class TableFriction(Effect):
 
 @register_effect("gripper_slip")
 class GripperSlip(Effect):
-    """Relative-velocity coupling and sag of the grasped material (module docstring)."""
+    """Extra velocity coupling and sag of the grasped object as a whole (module docstring)."""
 
     @dataclass
     class Params:
-        coupling: float = 0.0  # 1/s
+        hold: float = 0.0  # fraction per step
         sag: float = 0.0  # fraction of g
         radius: float = 0.03  # m
 
@@ -98,7 +104,7 @@ class GripperSlip(Effect):
         super().__init__(params, attr_dim=attr_dim)
         if not params.radius > 0:
             raise ConfigError(f"effect gripper_slip: radius must be > 0, got {params.radius}")
-        self.coupling = _param(float(params.coupling))
+        self.hold = _param(float(params.hold))
         self.sag = _param(float(params.sag))
 
     def forward(self, ctx: EffectContext) -> torch.Tensor:
@@ -109,10 +115,15 @@ class GripperSlip(Effect):
         d2 = torch.cdist(ctx.positions.detach(), ctx.control_points.detach()) ** 2  # [N, P]
         j = d2.argmin(dim=1)
         r2 = d2.gather(1, j[:, None]).squeeze(1)
-        w = closed * (1.0 - r2 / self.params.radius ** 2).clamp_min(0.0) ** 2
-        rel = ctx.velocities - ctx.control_velocities[j]
-        acc = -self.coupling * rel + self.sag * ctx.gravity[None, :]
-        return (ctx.masses * w)[:, None] * acc
+        w = closed * (1.0 - r2 / self.params.radius ** 2).clamp_min(0.0) ** 2  # [N]
+        s = w.max()
+        if not bool(s > 0):
+            return out
+        wm = w * ctx.masses
+        u_g = (wm[:, None] * ctx.control_velocities[j]).sum(0) / wm.sum()  # [3] the grasp's velocity
+        v_bar = (ctx.masses[:, None] * ctx.velocities).sum(0) / ctx.masses.sum().clamp_min(1e-30)  # [3]
+        acc = s * (self.hold * (u_g - v_bar) / float(ctx.dt) + self.sag * ctx.gravity.to(out.dtype))  # [3]
+        return ctx.masses[:, None] * acc[None, :]
 
 
 @register_effect("mass_scale")
