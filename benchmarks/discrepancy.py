@@ -6,7 +6,9 @@
 1. A model trained on effect-free reference-world data (``--run`` reuses one; else OUT/data/<obj>_none
    is generated and ``soma train`` runs with ``--train-config``, default tiny).
 2. For every hidden effect (and ``none``, the negative control, unless ``--no-negative``): measured data
-   from the same world and seed with that effect switched on (OUT/data/<obj>_<effect>).
+   from the same world and seed with that effect switched on (OUT/data/<obj>_<effect>). And the
+   workflow's own-error reference: ``--reference-episodes`` effect-free episodes of world seed + 1
+   (OUT/data/<obj>_reference), which neither the model nor the measured data contain.
 3. The workflow (:func:`trainer.discrepancy.run_discrepancy`) on it -> OUT/<effect>/report.{md,json}.
 4. Scoring (the benchmark, not the workflow, reads the evaluation sidecars ``<episode>.meta.json``
    to learn which effect is on): OUT/table.md and OUT/bench.json with, per hidden effect, the named
@@ -190,7 +192,14 @@ def run(args: argparse.Namespace) -> int:
         if not (run_dir / "checkpoint.pt").is_file() or not read_checkpoint(run_dir / "checkpoint.pt")["extra"].get("complete"):
             tcfg = load_train_config(args.train_config, {"object": args.object})
             train(tcfg, clean, run_dir, log=log)
-    cfg = load_discrepancy_config(args.config)
+    over = {}
+    if args.reference_episodes > 0:
+        # the own-error control's reference: new effect-free episodes (another world seed), which the
+        # model was not trained on -- what a user records under the model's known conditions
+        ref = _generate(args.object, out / "data" / f"{args.object}_reference", args.reference_episodes,
+                        args.seed + 1, "none", args.world_config, log, args.effects_config)
+        over["reference_data"] = str(ref)
+    cfg = load_discrepancy_config(args.config, over)
     rows = []
     floor = None
     for eff in effects:
@@ -219,7 +228,7 @@ def run(args: argparse.Namespace) -> int:
     (out / "bench.json").write_text(json.dumps({"rows": rows, "floor": floor, "run": str(run_dir), "object": args.object,
                                                 "seed": args.seed, "episodes": args.episodes,
                                                 "world_config": args.world_config, "effects_config": args.effects_config,
-                                                "config": args.config,
+                                                "config": args.config, "reference_episodes": args.reference_episodes,
                                                 "definitions": {
                                                     "ratio_<m>": "raw: gap_after / gap_before on the effect data",
                                                     "ratio_excess_<m>": "(gap_after - floor) / (gap_before - floor); floor = "
@@ -246,6 +255,9 @@ def main(argv=None) -> int:
     p.add_argument("--effects-config", default=None, metavar="NAME|YAML",
                    help="effect magnitudes replacing the world config's (a name in config/world, e.g. effects_discrepancy)")
     p.add_argument("--no-negative", action="store_true", help="skip the negative control (no effect)")
+    p.add_argument("--reference-episodes", type=int, default=6, metavar="N",
+                   help="effect-free episodes recorded with world seed + 1 as the workflow's own-error reference "
+                        "(0: the workflow's default, the model's training dataset outside its train split)")
     return run(p.parse_args(argv))
 
 

@@ -61,7 +61,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(1)
     from soma_ros.core.checkpoint import load_checkpoint
     from trainer.config import load_train_config
-    from trainer.discrepancy import (EpisodeObs, _rollout, load_discrepancy_config, rank_candidates,
+    from trainer.discrepancy import (EpisodeObs, _rollout, heldout_names, load_discrepancy_config, rank_candidates,
                                      residual_per_frame)
     from trainer.evaluate import EvalContext
 
@@ -83,8 +83,9 @@ def main(argv=None) -> int:
     ctx = EvalContext(args.data, load_train_config(run / "train_config.yaml"), run / "scene", cache_dir=out / "cache")
     sim = load_checkpoint(run / "checkpoint.pt").eval()
     refs = ctx.refs
-    held = [r for r in refs if r.split == cfg.heldout_split]
-    fit = [r for r in refs if r.split != cfg.heldout_split]
+    hold = set(heldout_names(refs, cfg))
+    held = [r for r in refs if r.name in hold]
+    fit = [r for r in refs if r.name not in hold]
     if cfg.max_fit_episodes:
         fit = fit[: cfg.max_fit_episodes]
     if cfg.max_heldout_episodes:

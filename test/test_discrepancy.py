@@ -110,6 +110,17 @@ def test_decide_names_a_clear_winner_and_refuses_noise():
     assert decide({"a": ex["good"], "b": ex["good"]}, s2, 0.05, 0.1)[0] == "none"
 
 
+def test_bootstrap_with_alternative_baselines_takes_the_smaller_one():
+    rng = np.random.default_rng(4)
+    low = [1.0 + 0.1 * rng.random(10) for _ in range(3)]
+    high = [2.0 * x for x in low]
+    cand = {"t": [0.6 * x for x in low]}
+    one = bootstrap_explained(low, cand, 200, seed=5)["t"]
+    both = bootstrap_explained({"t": [high, low]}, cand, 200, seed=5)["t"]
+    np.testing.assert_allclose(both, one)  # the same resamples; the smaller baseline counts
+    np.testing.assert_allclose(one, 0.4, atol=1e-9)
+
+
 def test_config_rejects_unknown_candidates():
     with pytest.raises(ValueError, match="unknown candidate"):
         load_discrepancy_config("fast", {"candidates": ["no_such_effect"]})
@@ -174,7 +185,9 @@ def test_workflow_end_to_end_negative_control(clean_run):
         assert math.isfinite(r["explained_fraction"]) and r["uncertainty"] >= 0 and r["explained_fraction"] <= 1
     # the own-error control ran on the model's training data (here the measured data itself):
     # every candidate was calibrated there first
-    assert disk["decision"]["calibrated_on_reference"] and len(disk["episodes"]["reference"]) == 4
+    held_in_training = [r["name"] for r in json.loads((data / "manifest.json").read_text())["episodes"]
+                        if r["split"] != "train"]
+    assert disk["decision"]["calibrated_on_reference"] and disk["episodes"]["reference"] == held_in_training
     assert all("reference_parameters" in f for f in disk["fits"].values())
     ex = [r["explained_fraction"] for r in disk["ranking"]]
     assert ex == sorted(ex, reverse=True)
@@ -254,3 +267,28 @@ def test_calibration_on_the_models_own_conditions_separates_its_error_from_the_n
     fit, held = episodes(a0, [3, 4], "train"), episodes(a0, [5, 6], "test")
     base = [residual_per_frame(sim, o, scene) for o in held]
     assert rank_candidates(sim, fit, held, base, scene, cfg, quiet)[0] == "wind"
+
+
+def test_cli_reports_a_bad_reference_dataset_clearly(clean_run, tmp_path, capsys):
+    from soma_ros.cli import main
+
+    root, data = clean_run
+    rc = main(["discrepancy", "--checkpoint", str(root / "run"), "--data", str(data), "--out", str(tmp_path / "o"),
+               "--config", "fast", "--reference", str(tmp_path / "no_such_dataset")])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "reference_data" in err and "no_such_dataset" in err and "manifest.json" in err
+
+
+def test_stratified_holdout_holds_out_every_task():
+    from trainer.dataset import EpisodeRef
+    from trainer.discrepancy import heldout_names
+
+    tasks = ["lift", "drag", "fold"] * 3 + ["lift"]  # the cloth dataset's cycle, 10 episodes
+    refs = [EpisodeRef(f"e{i}", None, "test" if i in (3, 6, 9) else "train", t) for i, t in enumerate(tasks)]
+    cfg = load_discrepancy_config("default")
+    held = heldout_names(refs, cfg)
+    assert sorted({t for r, t in zip(refs, tasks) if r.name in held}) == ["drag", "fold", "lift"]
+    assert held == ["e4", "e5", "e6"]  # round(0.3 x (4, 3, 3)) = 1 each, mid-group, in manifest order
+    # a manifest split by name is still possible (here: the random split held out lifts only)
+    assert heldout_names(refs, load_discrepancy_config("default", {"heldout_split": "test"})) == ["e3", "e6", "e9"]

@@ -38,7 +38,7 @@ def write_report(out: Path, report: dict, stage1: dict, samples: dict, n_cluster
     fig, ax = plt.subplots(1, 2, figsize=(11, 3.8))
     for n in names:
         r = stage1[n]
-        ls = "-" if r["split"] == report["config"]["heldout_split"] else ":"
+        ls = "-" if n in report["episodes"]["heldout"] else ":"
         ax[0].plot(r["frames"], 1000 * np.asarray(r["points"]), ls, label=f"{n} ({r['task']})")
         ax[1].plot(r["frames"], np.nanmean(np.asarray(r["depth_rmse"], dtype=float), axis=1), ls)
     ax[0].set_xlabel("frame")

@@ -6,7 +6,10 @@ add it to the model and show the gap shrink (issue #8).
 ``--checkpoint``: a ``soma train`` run folder or the ``checkpoint.pt`` in one (its ``scene/`` and
 ``train_config.yaml`` define the initial states). ``--data``: the measured dataset (manifest.json
 + bags); its ``test`` split is held out, the other episodes are used to fit the candidates.
-Writes DIR/report.md, DIR/report.json (named_effect, ranking, gap_before, gap_after), plots, and
+``--reference``: episodes recorded under the conditions the model was trained in, which it was
+not trained on (default: the checkpoint's training dataset, its episodes outside the train split;
+``none``: no own-error control). Every candidate is calibrated there first, so a term that only
+fixes the model's own error is not named. Writes DIR/report.md, DIR/report.json (named_effect, ranking, gap_before, gap_after), plots, and
 DIR/model/ (the model with the named effect added: a run folder ``soma eval`` accepts).
 See :mod:`trainer.discrepancy` for the method.
 """
@@ -32,6 +35,9 @@ def register(subparsers) -> None:
                    help="config/discrepancy/<name>.yaml or a YAML path (default: default)")
     p.add_argument("--scene", default=None, metavar="DIR", help="scene bundle (default: the run's scene/)")
     p.add_argument("--candidates", default=None, metavar="LIST", help="comma-separated effect names (default: the config's)")
+    p.add_argument("--reference", default=None, metavar="DATA",
+                   help="dataset of the model's own conditions for the own-error control (default: the checkpoint's "
+                        "training dataset outside its train split; 'none': off)")
     p.add_argument("--fit-iters", type=int, default=None, metavar="N", help="Adam steps per candidate")
     p.add_argument("--feature-only", action="store_true",
                    help="add candidates as network features only (default: direct effects, their force is also "
@@ -51,6 +57,8 @@ def run(args: argparse.Namespace) -> int:
         over["candidates"] = [c.strip() for c in args.candidates.split(",") if c.strip()]
     if args.fit_iters is not None:
         over["fit_iters"] = args.fit_iters
+    if args.reference is not None:
+        over["reference_data"] = args.reference
     if args.feature_only:
         over["direct"] = False
     try:
