@@ -206,6 +206,14 @@ def episode_obs(ctx, ref, cfg: DiscrepancyConfig) -> tuple[EpisodeObs, EpisodeDa
     return ob, ep
 
 
+def with_passive_rule(sim: Simulator, cfg: DiscrepancyConfig) -> Simulator:
+    """``sim`` with the passive-object rule set from ``cfg.passive_friction`` (None: unchanged)."""
+    if cfg.passive_friction is not None:
+        sim.config.dynamics.passive_friction = None if cfg.passive_friction < 0 else float(cfg.passive_friction)
+        sim.config.dynamics.validate()
+    return sim
+
+
 HELDOUT = "discrepancy_heldout"  # split label of the held-out episodes in the workflow's evaluation context
 
 
@@ -539,10 +547,7 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
     train_cfg = load_train_config(cfg_path)
     ref_data, is_training_data = reference_dataset(cfg, read_checkpoint(ck)["extra"])  # fail before any work
     ctx = EvalContext(data, train_cfg, scene_dir, cache_dir=out / "cache")
-    sim = load_checkpoint(ck)
-    if cfg.passive_friction is not None:
-        sim.config.dynamics.passive_friction = None if cfg.passive_friction < 0 else float(cfg.passive_friction)
-        sim.config.dynamics.validate()
+    sim = with_passive_rule(load_checkpoint(ck), cfg)
     sim.eval()
     torch.manual_seed(cfg.seed)
     scene = ctx.scene
