@@ -292,3 +292,17 @@ def test_stratified_holdout_holds_out_every_task():
     assert held == ["e4", "e5", "e6"]  # round(0.3 x (4, 3, 3)) = 1 each, mid-group, in manifest order
     # a manifest split by name is still possible (here: the random split held out lifts only)
     assert heldout_names(refs, load_discrepancy_config("default", {"heldout_split": "test"})) == ["e3", "e6", "e9"]
+
+
+def test_scan_profiles_the_residual_and_rejects_an_unknown_parameter(clean_run, capsys):
+    from benchmarks.discrepancy_scan import main
+
+    root, data = clean_run
+    args = ["--run", str(root / "run"), "--data", str(data), "--effect", "wind", "--config", "fast"]
+    assert main(args + ["--param", "accel", "--values", "[0, 0, 0];[0, 8, 0]"]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("accel=")]
+    assert [ln.split(":")[0] for ln in lines] == ["accel=[0, 0, 0]", "accel=[0, 8, 0]"]
+    m0, m8 = (float(ln.split("mean ")[1].split(" ")[0]) for ln in lines)
+    assert 0 < m0 < m8  # a wind beyond the table's friction blows the rope away from the observations
+    assert main(args + ["--param", "nope", "--values", "0"]) == 2
+    assert "no parameter 'nope'" in capsys.readouterr().err
