@@ -176,10 +176,7 @@ class LiveSimulator:
         Settling stops a slow creep once the object is still; this rule stops the object being
         accelerated away by the learned dynamics in the first place (over repeated grasp cycles
         the ``tiny`` model without it slid the rope 8.9 m in six cycles; see the README)."""
-        if passive_friction is not None:
-            sim.config.dynamics.passive_friction = None if passive_friction < 0 else float(passive_friction)
-            sim.config.dynamics.validate()
-        self.sim = sim.eval()
+        self.sim = sim.set_passive_friction(passive_friction).eval()
         self.max_travel_m = float(max_travel_m)
         if settle_s < 0 or not settle_speed > 0:
             raise ValueError(f"settle_s must be >= 0 and settle_speed > 0, got {settle_s}, {settle_speed}")

@@ -208,10 +208,7 @@ def episode_obs(ctx, ref, cfg: DiscrepancyConfig) -> tuple[EpisodeObs, EpisodeDa
 
 def with_passive_rule(sim: Simulator, cfg: DiscrepancyConfig) -> Simulator:
     """``sim`` with the passive-object rule set from ``cfg.passive_friction`` (None: unchanged)."""
-    if cfg.passive_friction is not None:
-        sim.config.dynamics.passive_friction = None if cfg.passive_friction < 0 else float(cfg.passive_friction)
-        sim.config.dynamics.validate()
-    return sim
+    return sim.set_passive_friction(cfg.passive_friction)
 
 
 HELDOUT = "discrepancy_heldout"  # split label of the held-out episodes in the workflow's evaluation context

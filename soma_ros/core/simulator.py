@@ -616,6 +616,14 @@ class Simulator(nn.Module):
 
     forward = step
 
+    def set_passive_friction(self, mu: Optional[float]) -> "Simulator":
+        """Switch the passive-object rule (``DynamicsConfig.passive_friction``): None leaves the
+        model's setting, a negative value turns it off, any other is its friction coefficient."""
+        if mu is not None:
+            self.config.dynamics.passive_friction = None if mu < 0 else float(mu)
+            self.config.dynamics.validate()
+        return self
+
     def rollout(self, state: SimState, actions: Sequence[Optional[RobotAction]]) -> list[SimState]:
         """States after each action (len(actions) of them); differentiable under autograd."""
         out = []
