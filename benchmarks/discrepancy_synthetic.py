@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     from soma_ros.core.checkpoint import load_checkpoint
     from trainer.config import load_train_config
     from trainer.discrepancy import (EpisodeObs, _rollout, heldout_names, load_discrepancy_config, rank_candidates,
-                                     residual_per_frame, with_passive_rule)
+                                     residual_per_frame)
     from trainer.evaluate import EvalContext
 
     over = {}
@@ -81,7 +81,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     ctx = EvalContext(args.data, load_train_config(run / "train_config.yaml"), run / "scene", cache_dir=out / "cache")
-    sim = with_passive_rule(load_checkpoint(run / "checkpoint.pt"), cfg).eval()
+    sim = load_checkpoint(run / "checkpoint.pt").set_passive_friction(cfg.passive_friction).eval()
     refs = ctx.refs
     hold = set(heldout_names(refs, cfg))
     held = [r for r in refs if r.name in hold]

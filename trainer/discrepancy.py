@@ -206,11 +206,6 @@ def episode_obs(ctx, ref, cfg: DiscrepancyConfig) -> tuple[EpisodeObs, EpisodeDa
     return ob, ep
 
 
-def with_passive_rule(sim: Simulator, cfg: DiscrepancyConfig) -> Simulator:
-    """``sim`` with the passive-object rule set from ``cfg.passive_friction`` (None: unchanged)."""
-    return sim.set_passive_friction(cfg.passive_friction)
-
-
 HELDOUT = "discrepancy_heldout"  # split label of the held-out episodes in the workflow's evaluation context
 
 
@@ -231,7 +226,8 @@ def heldout_names(refs, cfg: DiscrepancyConfig) -> list[str]:
         if k:
             pick = np.round((np.arange(k) + 0.5) * n / k - 0.5).astype(int)
             out += [names[int(i)] for i in pick]
-    return [r.name for r in refs if r.name in set(out)]
+    chosen = set(out)
+    return [r.name for r in refs if r.name in chosen]
 
 
 def reference_dataset(cfg: DiscrepancyConfig, extra: dict) -> tuple[Optional[Path], bool]:
@@ -403,8 +399,7 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
                     p.copy_(a / n_avg)
     for p in params:
         p.requires_grad_(False)
-    values = {n: p.detach().cpu().reshape(-1).tolist() for n, p in model.effects[key].named_parameters()}
-    return model, losses, values
+    return model, losses, _values(model, key)
 
 
 def _line_search(model: Simulator, name: str, theta0: list[torch.Tensor], obs: Sequence[EpisodeObs],
@@ -544,7 +539,7 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
     train_cfg = load_train_config(cfg_path)
     ref_data, is_training_data = reference_dataset(cfg, read_checkpoint(ck)["extra"])  # fail before any work
     ctx = EvalContext(data, train_cfg, scene_dir, cache_dir=out / "cache")
-    sim = with_passive_rule(load_checkpoint(ck), cfg)
+    sim = load_checkpoint(ck).set_passive_friction(cfg.passive_friction)
     sim.eval()
     torch.manual_seed(cfg.seed)
     scene = ctx.scene
@@ -617,7 +612,7 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
     if ref_data is None:
         log("  no reference data (the model's training conditions): candidates are tested on the held-out "
             "explained fraction alone")
-    if ref_data is not None:
+    else:
         rctx = EvalContext(ref_data, train_cfg, scene_dir)
         rrefs = rctx.refs
         if is_training_data:
