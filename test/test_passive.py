@@ -128,3 +128,35 @@ def test_config_validation_and_checkpoint_default():
     cfg.dynamics.passive_contact_m = 0.0
     with pytest.raises(ConfigError, match="passive_contact_m"):
         cfg.dynamics.validate()
+
+
+def test_an_open_gripper_in_reach_does_not_hold_a_rising_object_up():
+    """The rule's "nothing holds it up" covers an open gripper within reach: its coupling only
+    drags, so an object rising at 0.3 m/s slows down at least at |g| (the root's upward speed after
+    one step <= max(0.3 - |g| dt, 0) + the open coupling's share), while a closed grip may keep it rising
+    (the cap is then max(previous, 0)). Before, an open gripper left in reach after a release let a
+    rising rope keep its speed: the live rope crept up 0.05-0.15 m over a 300-step hold."""
+    torch.manual_seed(0)
+    cfg = load_model_config({**load_model_config("cpu").to_dict(), "effects": [
+        {"name": "gravity"}, {"name": "support", "tau": 0.01, "gain": 1.0, "stiffness": 500.0},
+        {"name": "robot", "radius": 0.05, "max_neighbors": 64, "hidden": 32, "layers": 1, "form": "coupling",
+         "prior_grip": 0.5, "prior_open": 0.02, "direct": True, "feature": False}]})
+    cfg.dynamics.passive_friction = 0.5
+    sim = Simulator(cfg).eval()
+    with torch.no_grad():
+        s0 = sim.init_state(synthetic_rope(600, seed=0, center=(0.0, 0.0, 0.0)), SceneContext.table())
+    L = sim.hierarchy.root_level
+    up = _lifted(s0, 0.05)
+    rise = torch.tensor([[0.0, 0.0, 0.3 * s0.episode.scene.dt]])
+    up = dataclasses.replace(up, resid_prev=[r if l != L else r - rise for l, r in enumerate(up.resid)])
+    x = up.means
+    cp = (x[x[:, 0].argmax()] + torch.tensor([0.0, 0.0, 0.02]))[None]  # a finger 2 cm above one end
+    speeds = {}
+    for grip in (1.0, 0.0):
+        act = RobotAction(cp, grip)
+        with torch.no_grad():
+            assert sim.effects.split_active(sim.effect_context(up, act))[2] == 1  # in reach: direct force only
+            nxt = sim.step(up, act)
+        speeds[grip] = float((nxt.resid[L] - up.resid[L])[0, 2]) / s0.episode.scene.dt
+    assert speeds[1.0] <= max(0.3 - G_DT, 0.0) + 0.01
+    assert speeds[0.0] > speeds[1.0] + 0.2

@@ -67,8 +67,11 @@ The root carries the object's translation and is the one unbounded level. On a s
 where every force other than gravity and the support is zero or direct, the network's
 root update may slow the root down and make it fall, but not raise its horizontal or
 upward speed; resting on the table, Coulomb friction brakes its horizontal speed
-(:meth:`Simulator._passive_root`). Zero motion stays exactly zero (the rest fixed point
-below is kept bit for bit).
+(:meth:`Simulator._passive_root`). When nothing holds the object up (no force at all but
+gravity and the support, or only direct ones with the gripper open: an open gripper's
+coupling drags, it does not carry), a rising root slows down at least as under gravity,
+and so do the lower levels' motions relative to their anchors. Zero motion stays exactly
+zero (the rest fixed point below is kept bit for bit).
 
 At rest stays at rest (structural)
 ----------------------------------
@@ -328,6 +331,21 @@ def _clamp_norm(v: torch.Tensor, limit: Union[float, torch.Tensor]) -> torch.Ten
     n = safe_norm(v, keepdim=True)
     lim = limit if not isinstance(limit, torch.Tensor) else limit[:, None]
     return v * torch.clamp(lim / n, max=1.0)
+
+
+def _no_gain(v_old: torch.Tensor, v_net: torch.Tensor, up: torch.Tensor, g_dt: float, untouched: bool) -> torch.Tensor:
+    """Velocities [N, 3] ``v_net`` limited so that, per row, the speed perpendicular to ``up``
+    does not exceed ``v_old``'s (direction kept) and the speed along ``up`` does not exceed
+    max(``v_old``'s, 0) -- max(``v_old``'s - ``g_dt``, 0) when ``untouched`` (a rising body
+    slows down at least as under gravity). Slowing down and falling pass unchanged; equal
+    inputs at rest give exactly 0. The passive-object rule's first part (Simulator._passive_root)."""
+    vu0 = (v_old * up).sum(-1, keepdim=True)
+    vu1 = (v_net * up).sum(-1, keepdim=True)
+    vh0, vh1 = v_old - vu0 * up, v_net - vu1 * up
+    s0, s1 = vh0.norm(dim=-1, keepdim=True), vh1.norm(dim=-1, keepdim=True)
+    vh1 = vh1 * torch.where(s1 > s0, s0 / s1.clamp_min(1e-30), torch.ones_like(s1))
+    up_cap = (vu0 - g_dt if untouched else vu0).clamp_min(0.0)
+    return vh1 + torch.minimum(vu1, up_cap) * up
 
 
 def _quat_from_raw(o: torch.Tensor) -> torch.Tensor:
@@ -708,6 +726,9 @@ class Simulator(nn.Module):
         0 = untouched, 1 = only direct non-reference forces act; see ``EffectSet.split_active``)."""
         h, ep, cfg = self.hierarchy, state.episode, self.config
         dyn_cfg = cfg.dynamics
+        # the passive rule's "nothing holds it up": untouched, or only direct forces with the gripper
+        # open (an open gripper's coupling drags, it does not carry)
+        free = passive == 0 or (passive == 1 and action is not None and float(action.gripper) >= 0.5)
         L = h.root_level
         nl = L + 1
         dt = ep.scene.dt
@@ -766,12 +787,18 @@ class Simulator(nn.Module):
             if a_direct is not None:  # residual physics: own direct acceleration minus the anchor's
                 a_d = a_direct[l] if l == L else a_direct[l] - a_direct[l + 1].index_select(0, h.parents[l])
             if passive < 2 and l == L and reference is not None:
-                v_new = _clamp_norm(self._passive_root(v_rel, v_rel + dt * acc, a_d, state, untouched=passive == 0),
+                v_new = _clamp_norm(self._passive_root(v_rel, v_rel + dt * acc, a_d, state, untouched=free),
                                     dyn_cfg.max_speed)
             else:
                 if a_d is not None:
                     acc = acc + a_d
-                v_new = _clamp_norm(v_rel + dt * acc, dyn_cfg.max_speed)
+                v_new = v_rel + dt * acc
+                if free and reference is not None:
+                    # nothing holds the object: its parts' motion relative to their anchors may not
+                    # gain either (a model that never saw a release otherwise lets them creep up)
+                    v_new = _no_gain(v_rel, v_new, ep.scene.plane_normal.to(v_new),
+                                     float(ep.scene.gravity.norm()) * float(dt), True)
+                v_new = _clamp_norm(v_new, dyn_cfg.max_speed)
             d_new = state.resid[l] + dt * v_new
             if l < L:
                 d_new = _clamp_norm(d_new, ep.residual_limit[l])
@@ -823,8 +850,9 @@ class Simulator(nn.Module):
 
         1. the network's update may not raise the horizontal speed |v_h| above the previous
            one, nor v_u above max(previous v_u, 0) -- above max(previous v_u - |g| dt, 0) when
-           the object is ``untouched`` (no non-reference force at all: a rising object slows
-           down at least as fast as under gravity). Falling and slowing down are the network's;
+           nothing holds the object up (``untouched``: no non-reference force at all, or only
+           direct ones with the gripper open; a rising object slows down at least as fast as
+           under gravity). Falling and slowing down are the network's;
         2. the direct effects' acceleration is added (robot coupling, wind);
         3. while the object rests on the support (its lowest splat within ``passive_contact_m``
            of its lowest height in the episode's initial state): the support takes the fraction
@@ -848,12 +876,7 @@ class Simulator(nn.Module):
             vu = (v * up).sum(-1, keepdim=True)
             return vu, v - vu * up
 
-        vu0, vh0 = parts(v_old)
-        vu1, vh1 = parts(v_net)
-        s0, s1 = vh0.norm(dim=-1, keepdim=True), vh1.norm(dim=-1, keepdim=True)
-        vh1 = vh1 * torch.where(s1 > s0, s0 / s1.clamp_min(1e-30), torch.ones_like(s1))
-        up_cap = (vu0 - g_dt if untouched else vu0).clamp_min(0.0)
-        v = vh1 + torch.minimum(vu1, up_cap) * up
+        v = _no_gain(v_old, v_net, up, g_dt, untouched)
         if a_direct is not None:
             v = v + float(ep.scene.dt) * a_direct
         height = state.positions[0] @ up + d  # [N0]
