@@ -121,6 +121,29 @@ def test_bootstrap_with_alternative_baselines_takes_the_smaller_one():
     np.testing.assert_allclose(one, 0.4, atol=1e-9)
 
 
+def test_discrepancy_detection_compares_episode_residuals_with_the_reference():
+    """Rank-based: a measured set whose residuals are 1.5x the reference's is detected, the same
+    distribution is not (also with a reference episode where the model failed, like the rope's
+    133 mm), and fewer than 3 episodes on a side is not assessed."""
+    from trainer.discrepancy import detect_discrepancy
+
+    rng = np.random.default_rng(1)
+    ref = np.exp(rng.normal(np.log(0.006), 0.35, 20))
+    ref_fail = np.concatenate([ref[:19], [0.133]])
+    same = np.exp(rng.normal(np.log(0.006), 0.35, 20))
+    worse = 1.5 * np.exp(rng.normal(np.log(0.006), 0.35, 20))
+    d = detect_discrepancy(worse, ref_fail, 2000, 0.05)
+    assert d["assessed"] and d["detected"] and d["auc"] > 0.7 and d["median_ratio_low"] > 1.0
+    for r in (ref, ref_fail):
+        d0 = detect_discrepancy(same, r, 2000, 0.05)
+        assert d0["assessed"] and not d0["detected"] and 0.3 < d0["auc"] < 0.7
+    assert detect_discrepancy(worse, ref[:2], 500, 0.05) == {
+        "n_measured": 20, "n_reference": 2, "alpha": 0.05, "measured_median": float(np.median(worse)),
+        "reference_median": float(np.median(ref[:2])), "assessed": False, "detected": None}
+    # identical residuals: AUC exactly 0.5 (ties count half), not detected
+    assert detect_discrepancy(ref, ref, 500, 0.05)["auc"] == 0.5
+
+
 def test_config_rejects_unknown_candidates():
     with pytest.raises(ValueError, match="unknown candidate"):
         load_discrepancy_config("fast", {"candidates": ["no_such_effect"]})
@@ -188,6 +211,10 @@ def test_workflow_end_to_end_negative_control(clean_run):
     held_in_training = [r["name"] for r in json.loads((data / "manifest.json").read_text())["episodes"]
                         if r["split"] != "train"]
     assert disk["decision"]["calibrated_on_reference"] and disk["episodes"]["reference"] == held_in_training
+    # too few reference episodes to tell a discrepancy from the model's own error: said, not guessed
+    det = disk["discrepancy"]
+    assert det["n_reference"] == len(held_in_training) < 3 and det["assessed"] is False and det["detected"] is None
+    assert "not assessed" in (out / "report.md").read_text()
     assert all("reference_parameters" in f for f in disk["fits"].values())
     ex = [r["explained_fraction"] for r in disk["ranking"]]
     assert ex == sorted(ex, reverse=True)

@@ -56,8 +56,10 @@ def test_negative_control_runs_first_and_table_names_both_definitions():
     for hidden, named, gb, ga, floor in ((["none"], "none", FLOOR, FLOOR, FLOOR),
                                          (["wind"], "wind", {"rmse": 0.05, "chamfer": 0.06},
                                           {"rmse": 0.035, "chamfer": 0.03}, FLOOR)):
+        det = ({"assessed": True, "detected": True, "auc": 0.8, "auc_low": 0.62} if named == "wind"
+               else {"assessed": False, "detected": None})
         rows.append({"hidden": hidden, "named": named, "match": True, "ranking": rank, "gap_before": gb,
-                     "gap_after": ga, **score_gap(gb, ga, floor)})
+                     "gap_after": ga, "detection": det, **score_gap(gb, ga, floor)})
     lines = format_table(rows, "# t")
     head = next(ln for ln in lines if ln.startswith("| hidden"))
     assert "halved (raw)" in head and "halved (excess)" in head
@@ -65,6 +67,7 @@ def test_negative_control_runs_first_and_table_names_both_definitions():
     assert len(body) == 2 and all(ln.count("|") == head.count("|") for ln in body)
     assert body[0].rstrip().endswith("| n/a |")  # the control has no excess to halve
     assert "0.25 / 0.25 | yes |" in body[1] and "0.70 / 0.50 | no |" in body[1]
+    assert "| yes (0.80, 0.62) |" in body[1] and "| none | none | yes | n/a |" in body[0]
 
 
 def test_effects_config_replaces_only_the_magnitudes():

@@ -127,7 +127,8 @@ class DiscrepancyConfig:
     reference_data: Optional[str] = None  # the own-error control (rank_candidates): episodes of the conditions the
     # model was trained in that it was not trained on; None: the checkpoint's training dataset, its non-train
     # episodes; "" or "none": no control
-    reference_episodes: int = 6  # episodes of it used (evenly spaced), 0 = all
+    reference_episodes: int = 12  # episodes of it used (evenly spaced), 0 = all: the calibration and the
+    # detection of a discrepancy beyond the model's own error (detect_discrepancy) both use them
     eval_frame_stride: int = 2
     contact_sheets: bool = True
     seed: int = 0
@@ -316,6 +317,42 @@ def bootstrap_explained(base: Sequence[np.ndarray], cand: dict[str, Sequence[np.
     return out
 
 
+def detect_discrepancy(measured: Sequence[float], reference: Sequence[float], n: int, alpha: float,
+                       seed: int = 0, min_episodes: int = 3) -> dict:
+    """Do the measured episodes disagree with the model by more than its own error does?
+
+    ``measured`` / ``reference``: the unchanged model's mean 3D residual of each measured episode
+    and of each reference episode (the conditions it was trained in; episodes are the
+    independent units). Statistic: AUC = P(a measured episode's residual > a reference one's)
+    (+ half the ties), 0.5 when the measured data are like the reference; its lower bound is the
+    ``alpha`` quantile of a bootstrap that resamples both groups' episodes. ``detected``: that
+    bound is above 0.5; None (not assessed) with fewer than ``min_episodes`` in either group.
+    Rank-based, so one episode where the model fails on either side does not decide it. Also the
+    ratio of the median residuals (an effect size in the residual's own unit) with its bound."""
+    x = np.asarray(measured, dtype=np.float64)
+    y = np.asarray(reference, dtype=np.float64)
+    out = {"n_measured": int(x.size), "n_reference": int(y.size), "alpha": alpha,
+           "measured_median": float(np.median(x)) if x.size else None,
+           "reference_median": float(np.median(y)) if y.size else None}
+    if x.size < min_episodes or y.size < min_episodes:
+        return {**out, "assessed": False, "detected": None}
+
+    def auc(a, b):  # [..., A], [..., B] -> [...]
+        d = a[..., :, None] - b[..., None, :]
+        return ((d > 0).mean((-1, -2)) + 0.5 * (d == 0).mean((-1, -2)))
+
+    rng = np.random.default_rng(seed)
+    xs = x[rng.integers(0, x.size, (n, x.size))]
+    ys = y[rng.integers(0, y.size, (n, y.size))]
+    a_bs = auc(xs, ys)
+    ratio_bs = np.median(xs, axis=1) / np.maximum(np.median(ys, axis=1), 1e-12)
+    a0 = float(auc(x, y))
+    lo = float(np.quantile(a_bs, alpha))
+    return {**out, "assessed": True, "detected": bool(lo > 0.5), "auc": a0, "auc_low": lo,
+            "median_ratio": float(np.median(x) / max(float(np.median(y)), 1e-12)),
+            "median_ratio_low": float(np.quantile(ratio_bs, alpha))}
+
+
 def decide(explained: dict[str, float], samples: dict[str, np.ndarray], alpha: float,
            min_explained: float) -> tuple[str, list[dict], dict]:
     """(named effect or "none", ranking rows sorted by explained fraction, decision details)."""
@@ -431,7 +468,8 @@ def _values(model: Simulator, name: str) -> dict:
 def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Sequence[EpisodeObs],
                     base: Sequence[np.ndarray], scene: SceneContext, cfg: DiscrepancyConfig,
                     log: Callable[[str], None] = print, ref_obs: Sequence[EpisodeObs] = (),
-                    ref_scene: Optional[SceneContext] = None):
+                    ref_scene: Optional[SceneContext] = None, fit_res: Optional[Sequence[np.ndarray]] = None,
+                    ref_res: Optional[Sequence[np.ndarray]] = None):
     """Fit every candidate alone; its explained fraction of the held-out 3D residual; bootstrap;
     decision. Returns (named, ranking, decision, fits, fitted models, bootstrap samples).
 
@@ -445,10 +483,17 @@ def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Seq
     episodes: what the new data asks of the term beyond both models that assume nothing new
     (the calibration, fitted on a few episodes, need not carry over). Effect-free data asks
     for nothing more (explained ~ 0); an effect of the opposite sign to the model's own error
-    (a slipping grip on a model that under-lifts) is still seen."""
+    (a slipping grip on a model that under-lifts) is still seen.
+
+    ``fit_res`` / ``ref_res``: the unchanged model's per-frame residuals of ``fit_obs`` /
+    ``ref_obs`` when the caller has them already (else they are computed)."""
     ref_scene = ref_scene or scene
-    fit_base = float(sum(residual_per_frame(sim, o, scene).sum() for o in fit_obs))
-    ref_base = float(sum(residual_per_frame(sim, o, ref_scene).sum() for o in ref_obs)) if ref_obs else 0.0
+    if fit_res is None:
+        fit_res = [residual_per_frame(sim, o, scene) for o in fit_obs]
+    if ref_res is None:
+        ref_res = [residual_per_frame(sim, o, ref_scene) for o in ref_obs]
+    fit_base = float(sum(r.sum() for r in fit_res))
+    ref_base = float(sum(r.sum() for r in ref_res)) if ref_obs else 0.0
     den0 = max(sum(float(x.sum()) for x in base), 1e-12)
     cand_res: dict[str, list[np.ndarray]] = {}
     cand_base: dict[str, list[list[np.ndarray]]] = {}  # per candidate: its baselines (the smallest sum counts)
@@ -627,9 +672,18 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
         if ref_obs:
             log(f"  reference: {len(ref_obs)} episodes of {ref_data} (own-error control)")
 
+    # ---- is there a disagreement beyond the model's own error at all? (measured vs reference episodes)
+    ref_res = [residual_per_frame(sim, o, ref_scene) for o in ref_obs]
+    detection = detect_discrepancy([float(np.mean(stage1[r.name]["points"])) for r in fit + held],
+                                   [float(r.mean()) for r in ref_res], cfg.bootstrap, cfg.alpha, cfg.seed)
+    if detection["assessed"]:
+        log(f"  residual vs the reference episodes: AUC {detection['auc']:.2f} (lower bound {detection['auc_low']:.2f}), "
+            f"median x{detection['median_ratio']:.2f}: discrepancy {'detected' if detection['detected'] else 'not detected'}")
+
     # ---- step 3: candidate fits and held-out explained fraction
+    fit_res = [np.asarray(stage1[o.name]["points"]) for o in fit_obs]
     named, ranking, decision, fits, models, samples = rank_candidates(sim, fit_obs, held_obs, base, scene, cfg, log,
-                                                                      ref_obs, ref_scene)
+                                                                      ref_obs, ref_scene, fit_res, ref_res)
 
     # ---- step 4: add, (fine-tune), save, re-evaluate on the held-out episodes
     after = sim
@@ -665,6 +719,7 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
         "gap_before": gap["gap_before"],
         "gap_after": gap["gap_after"],
         "decision": decision,
+        "discrepancy": detection,
         "fits": {k: {kk: vv for kk, vv in v.items()} for k, v in fits.items()},
         "episodes": {"fit": [r.name for r in fit], "heldout": [r.name for r in held],
                      "reference": [o.name for o in ref_obs]},

@@ -27,6 +27,20 @@ def _plt():
     return plt
 
 
+def _detection_line(det: dict | None, named: str) -> str:
+    """The report's line on whether the measured data disagree beyond the model's own error."""
+    if not det or not det.get("assessed"):
+        n = 0 if not det else det.get("n_reference", 0)
+        return (f"discrepancy beyond the model's own error: not assessed ({n} reference episodes; "
+                f"at least 3 measured and 3 reference episodes are needed)")
+    verdict = "**detected**" if det["detected"] else "not detected"
+    return (f"discrepancy beyond the model's own error: {verdict} (P(measured episode residual > reference) = "
+            f"{det['auc']:.2f}, lower bound {det['auc_low']:.2f}; median residual {1000 * det['measured_median']:.1f} mm "
+            f"vs {1000 * det['reference_median']:.1f} mm on {det['n_reference']} reference episodes, "
+            f"x{det['median_ratio']:.2f})"
+            + ("; no candidate of the library explains it significantly" if det["detected"] and named == "none" else ""))
+
+
 def write_report(out: Path, report: dict, stage1: dict, samples: dict, n_clusters: int, sim) -> None:
     import warnings
 
@@ -148,6 +162,7 @@ def write_report(out: Path, report: dict, stage1: dict, samples: dict, n_cluster
         f"(winner candidate `{d['winner_candidate']}`, lower bound {d['winner_lower_bound']:.3f} vs floor "
         f"{d['min_explained']}; margin over `{d.get('runner_up', '-')}` lower bound "
         f"{d.get('margin_lower_bound', float('nan')):.3f}; significant: {d['significant']})",
+        f"- {_detection_line(report.get('discrepancy'), report['named_effect'])}",
         f"- updated model: `{report['checkpoint_out']}`",
         "",
         "## Where the residual lives",
