@@ -249,7 +249,9 @@ def test_calibration_on_the_models_own_conditions_separates_its_error_from_the_n
     a0 on ANY data (its own error), the new data has a0 + a1. Calibrated on the reference
     (a0 only), the wind candidate is named on the new data for a1 alone, and on data like the
     reference it explains nothing; without the calibration, a0 alone is "named" (the error the
-    control exists for)."""
+    control exists for). The observed points carry 3 mm of noise, as back-projected depth does:
+    without it the calibrated model matches the world exactly, and relative gains on a residual
+    near zero are fit noise (fractions of 0.24 from parameters equal to 0.02 m/s^2)."""
     import copy
 
     from soma_ros.core.config import load_model_config
@@ -270,15 +272,17 @@ def test_calibration_on_the_models_own_conditions_separates_its_error_from_the_n
             sp = synthetic_rope(300, seed=s, center=(0.0, 0.0, 0.3))  # in the air: the wind moves it
             world.init_state(sp, scene)
             ob = EpisodeObs(f"e{s}", None, split, scene.dt, torch.full((T, 4, 3), 3.0), torch.ones(T), sp, frames, [])
+            noise = torch.Generator().manual_seed(1000 + s)
             with torch.no_grad():
-                ob.points = [st.means[::3].clone() for _, st in _rollout(world, ob, scene, frames)]
+                ob.points = [st.means[::3] + 0.003 * torch.randn(st.means[::3].shape, generator=noise)
+                             for _, st in _rollout(world, ob, scene, frames)]
             out.append(ob)
         return out
 
     sim.init_state(synthetic_rope(300, seed=1, center=(0.0, 0.0, 0.3)), scene)  # bind
     a0, a01 = [0.0, 0.6, 0.0], [0.6, 0.6, 0.0]
     ref = episodes(a0, [1, 2], "train")
-    cfg = load_discrepancy_config("fast", {"candidates": ["wind", "linear_drag"], "fit_iters": 12,
+    cfg = load_discrepancy_config("fast", {"candidates": ["wind", "linear_drag"], "fit_iters": 24,
                                            "line_search": [0.5, 1.0, 1.5], "bootstrap": 300})
     quiet = lambda *a: None  # noqa: E731
     for accel, want in ((a01, "wind"), (a0, "none")):

@@ -41,7 +41,8 @@ is computed by the evaluation engineer's scorer, :mod:`trainer.evaluate`):
    of the conditions the model was trained in (``reference_data``; default: the
    checkpoint's training dataset), then re-fitted from there on the measured fit
    episodes, and explained = 1 - residual(re-fitted) / min(residual(calibrated),
-   residual(unchanged)) on the held-out episodes: only what the new data asks of
+   residual(unchanged), residual(calibration continued on the reference for the
+   re-fit's number of steps)) on the held-out episodes: only what the new data asks of
    the term beyond the model's own conditions counts, in either direction (a grip
    that slips on a model that under-lifts too). Without reference data a candidate starts at 0
    and explained is against the unchanged model. The winner is named when the
@@ -479,9 +480,12 @@ def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Seq
     candidate is first *calibrated* there (fitted from 0 on ``ref_obs``: the part of the
     term that fixes the model's own error on any data, e.g. a tighter grip for a model that
     under-lifts), then re-fitted from that on the measured fit episodes, and explained = 1 -
-    residual(re-fitted) / min(residual(calibrated), residual(unchanged)) on the held-out
-    episodes: what the new data asks of the term beyond both models that assume nothing new
-    (the calibration, fitted on a few episodes, need not carry over). Effect-free data asks
+    residual(re-fitted) / min(residual(calibrated), residual(unchanged), residual(continued))
+    on the held-out episodes, where "continued" is the calibration fitted on ``ref_obs`` for
+    as many more steps as the re-fit takes on the measured ones: what the new data asks of the
+    term beyond every model that assumes nothing new (the calibration, fitted on a few
+    episodes, need not carry over; a calibration that had not converged would otherwise hand
+    the re-fit's extra steps to the new data). Effect-free data asks
     for nothing more (explained ~ 0); an effect of the opposite sign to the model's own error
     (a slipping grip on a model that under-lifts) is still seen.
 
@@ -512,6 +516,12 @@ def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Seq
             fit_start = float(sum(residual_per_frame(calib, o, scene).sum() for o in fit_obs))
             model, losses, _ = fit_effect(calib, name, fit_obs, scene, cfg, cfg.fit_iters, log, key=name)
             theta0 = [p.detach().clone() for p in calib.effects[name].parameters()]
+            # the same budget on the reference: the re-fit continues an optimisation the calibration
+            # may not have finished, and what more steps on *any* data would find is not new
+            cont, _, _ = fit_effect(calib, name, ref_obs, ref_scene, cfg, cfg.fit_iters, log, key=name)
+            _line_search(cont, name, theta0, ref_obs, ref_scene, cfg.line_search, r)  # as the re-fit's
+            cand_base[name].append([residual_per_frame(cont, o, scene) for o in held_obs])
+            rec.update(reference_continued_parameters=_values(cont, name))
         else:
             model, losses, _ = fit_effect(sim, name, fit_obs, scene, cfg, cfg.fit_iters, log)
             cand_base[name] = [list(base)]
