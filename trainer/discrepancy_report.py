@@ -32,9 +32,10 @@ def _detection_line(det: dict | None, named: str) -> str:
     if not det or not det.get("assessed"):
         n = 0 if not det else det.get("n_reference", 0)
         return (f"discrepancy beyond the model's own error: not assessed ({n} reference episodes; "
-                f"at least 3 measured and 3 reference episodes are needed)")
+                f"at least 3 measured and 3 reference episodes (of the tasks both have) are needed)")
     verdict = "**detected**" if det["detected"] else "not detected"
-    return (f"discrepancy beyond the model's own error: {verdict} (P(measured episode residual > reference) = "
+    same = " of the same task" if det.get("stratified_by_task") else ""
+    return (f"discrepancy beyond the model's own error: {verdict} (P(measured episode residual > reference{same}) = "
             f"{det['auc']:.2f}, lower bound {det['auc_low']:.2f}; median residual {1000 * det['measured_median']:.1f} mm "
             f"vs {1000 * det['reference_median']:.1f} mm on {det['n_reference']} reference episodes, "
             f"x{det['median_ratio']:.2f})"
