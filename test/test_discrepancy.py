@@ -374,3 +374,13 @@ def test_scan_profiles_the_residual_and_rejects_an_unknown_parameter(clean_run, 
     assert 0 < m0 < m8  # a wind beyond the table's friction blows the rope away from the observations
     assert main(args + ["--param", "nope", "--values", "0"]) == 2
     assert "no parameter 'nope'" in capsys.readouterr().err
+    # scaling the model's own robot term: 1 is the unchanged model (same residual as no wind)
+    base = ["--run", str(root / "run"), "--data", str(data), "--config", "fast"]
+    assert main(base + ["--scale-term", "robot", "--values", "1,0"]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("robot_scale=")]
+    s1, s0 = (float(ln.split("mean ")[1].split(" ")[0]) for ln in lines)
+    assert s1 == m0 and s0 != s1
+    assert main(base + ["--scale-term", "nope", "--values", "1"]) == 2
+    assert "no term 'nope'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(base + ["--values", "1"])  # neither mode
