@@ -205,6 +205,7 @@ def run(args: argparse.Namespace) -> int:
         ref = _generate(args.object, out / "data" / f"{args.object}_reference", args.reference_episodes,
                         args.seed + 1, "none", args.world_config, log, args.effects_config)
         over["reference_data"] = str(ref)
+        over["reference_episodes"] = args.reference_episodes  # all of them (the config's default picks 12)
     cfg = load_discrepancy_config(args.config, over)
     rows = []
     floor = None
