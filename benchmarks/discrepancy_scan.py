@@ -8,10 +8,11 @@
 For every value (a number, or a JSON list for a vector parameter: ``--values "[0,2,0];[0,5,0]"`` with
 ``;`` between values) the model with the effect added as a direct term at that value (or, with
 ``--scale-term KEY``, with the force of its own term KEY multiplied by the value: ``robot`` at 0.6 is
-a grip that transmits 60% of what the model learned) is rolled out open loop on every episode, and the mean 3D residual (observed object point -> nearest splat, m) is printed
-per episode and overall, with the workflow config's frames, points and passive-object rule. It tells
-whether a missed effect is a fitting failure (the residual has a lower minimum elsewhere) or a model
-that cannot express it (it has not).
+a grip that transmits 60% of what the model learned) is rolled out open loop on every episode, and
+the mean 3D residual (observed object point -> nearest splat, m) is printed per episode and overall,
+with the workflow config's frames, points and passive-object rule. It tells whether a missed effect
+is a fitting failure (the residual has a lower minimum elsewhere) or a model that cannot express it
+(it has not).
 """
 
 from __future__ import annotations
