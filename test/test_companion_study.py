@@ -143,3 +143,22 @@ def test_explained_table_recovers_an_effect_the_twin_produced():
     with pytest.raises(ValueError):
         explained_table({"gt": x0.numpy(), **common}, {"gt": x1[:1].numpy(), **common}, "wind", [[0.0, 1.0, 0.0]],
                         cfg, 0.0, log=lambda s: None)
+
+
+def test_calibration_moves_a_poor_twin_towards_the_effect_free_motion():
+    from benchmarks.discrepancy_companion import calibrate, nominal_error_mm
+
+    world = Companion(CompanionConfig(num_nodes=48, attach_radius=0.03))
+    pts = [_rope(), _rope() + torch.tensor([0.0, 0.1, 0.0])]
+    b = world.prepare(pts, UP, 0.0, G, 1.0 / 30.0)
+    cps, grips = zip(*[_grasp_lift(p[0], T=24) for p in pts])
+    cp, grip = torch.cat(cps), torch.cat(grips)
+    with torch.no_grad():
+        x = world.skin(b, world.rollout(b, cp, grip))
+    none = {"gt": x.numpy(), "cp": cp.numpy(), "grip": grip.numpy(), "dt": np.float64(1.0 / 30.0),
+            "tasks": np.array(["lift", "lift"]), "names": np.array(["a", "b"])}
+    poor = {"num_nodes": 8, "attach_radius": 0.005}  # grasps nothing: the rope stays on the table
+    before = nominal_error_mm(none, poor, 0.0)
+    best = calibrate(none, poor, 8, 0, 0.0, log=lambda s: None)
+    after = nominal_error_mm(none, best, 0.0)
+    assert before > 15.0 and after < 0.5 * before, (before, after)
