@@ -52,6 +52,8 @@ gripper_slip       [B]       the grip saturates: each held node's correction is 
                              times the weight (s >= 0)
 mass_scale         [B]       the object is ``1 + e`` times heavier (inverse mass scaled in
                              the constraints and the grip; e > -0.9)
+stiffness_scale    [B]       stretch and bending are ``1 + k`` times stiffer (compliances
+                             divided by it; k > -0.9)
 =================  ========  =============================================================
 
 Shapes: ``rest`` [B, K, 3], constraints [B, E] (padded, ``kind`` 0), actions: control points
@@ -80,6 +82,7 @@ EFFECT_TERMS: dict[str, tuple[int, ...]] = {
     "table_friction": (),
     "gripper_slip": (),
     "mass_scale": (),
+    "stiffness_scale": (),
 }
 
 
@@ -305,6 +308,8 @@ class Companion(nn.Module):
         a_str = self.log_stretch.exp() / h2
         a_bend = self.log_bend.exp() / h2
         alpha = torch.where(batch.kind == 2, a_bend, a_str) / batch.rest_len  # [B, E]
+        if "stiffness_scale" in eff:
+            alpha = alpha / (1.0 + eff["stiffness_scale"].clamp_min(-0.9))[:, None]
         live = (batch.kind > 0).to(alpha.dtype)
         a_grip = self.log_grip.exp() / h2
         damp = torch.exp(-self.log_drag.exp() * h)

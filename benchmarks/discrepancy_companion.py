@@ -16,6 +16,12 @@ and per task (1 = the twin predicts the effect exactly, 0 = no better than leavi
 of the grid (or 0); before the table: the companion's nominal error against the
 effect-free ground truth and the mean |D|.
 
+``--term all`` with a list of effects prints the matrix effect x term (every term over a generic
+grid, :data:`GRIDS`; the value chosen on two thirds of each task's episodes, the explained fraction
+scored on the other third): does the right term win? And for each winner, the most such a channel
+could do for the held-out episodes' gap: the Chamfer and vertex RMS to the effect's ground truth of a nominal model that is
+exactly the effect-free ground truth, without and with the twin's differential.
+
 ``--calibrate N`` first fits the companion's nominal configuration to the effect-free episodes
 (random search, :data:`SEARCH_SPACE`): a twin closer to the world's nominal motion.
 
@@ -91,6 +97,70 @@ SEARCH_SPACE = {
     "carry_neighbors": [2, 4, 8], "bend_compliance": (-7.0, -2.0), "stretch_compliance": (-9.0, -5.0),
     "drag": (-1.0, 1.0), "friction": [0.1, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5],
 }
+
+
+#: ``--term all``: every term over a generic grid (set before looking at any effect's size): wind
+#: 1-16 m/s^2 in the four horizontal directions, friction changes both ways, slips and scales on a
+#: doubling ladder
+GRIDS = {
+    "wind": ";".join(f"{a * m:g},{b * m:g},0" for a, b in ((1, 0), (-1, 0), (0, 1), (0, -1)) for m in (1, 2, 4, 8, 16)),
+    "table_friction": "-0.45;-0.3;-0.15;0.3;0.6",
+    "gripper_slip": "1;2;3;4;6;8",
+    "mass_scale": "0.5;1;2;4",
+    "stiffness_scale": "-0.5;1;3;9",
+    "quadratic_drag": "0.5;1;2;4",
+    "linear_drag": "0.5;1;2;4",
+}
+
+
+def heldout_mask(tasks) -> np.ndarray:
+    """Held-out episodes for the matrix: within each task, positions 1, 4, 7, ... (a third, every task)."""
+    tasks = np.asarray(tasks)
+    out = np.zeros(len(tasks), dtype=bool)
+    for k in sorted(set(tasks.tolist())):
+        idx = np.flatnonzero(tasks == k)
+        out[idx[1::3]] = True
+    return out
+
+
+def subset(d: dict, mask: np.ndarray) -> dict:
+    """The episodes of a ground-truth dict selected by a boolean mask."""
+    return {k: (v[mask] if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == len(mask) else v)
+            for k, v in d.items()}
+
+
+def chamfer_mm(a, b):
+    """Mean symmetric nearest-point distance (mm) of point sets a, b [E, T, M, 3], over episodes and frames."""
+    import torch
+
+    d = torch.cdist(a.flatten(0, 1), b.flatten(0, 1))
+    return 1000.0 * float((0.5 * (d.min(-1).values.mean(-1) + d.min(-2).values.mean(-1))).mean())
+
+
+def perfect_nominal_gap(none: dict, eff: dict, term: str, value: list[float], companion_cfg: dict,
+                        table_height: float) -> dict:
+    """The most a twin channel could do for the gap: a nominal model that is exactly the effect-free
+    ground truth, plus the twin's differential at ``value``; Chamfer and vertex RMS (mm) to the effect
+    ground truth without and with it."""
+    import torch
+
+    from .companion import Companion, CompanionConfig, effect_shape
+
+    comp = Companion(CompanionConfig(**companion_cfg))
+    g0, g1 = torch.tensor(none["gt"]), torch.tensor(eff["gt"])
+    E = g0.shape[0]
+    batch = comp.prepare([g[0] for g in g0], torch.tensor([0.0, 0.0, 1.0]), -float(table_height),
+                         torch.tensor([0.0, 0.0, -9.81]), float(none["dt"]))
+    cp, grip = torch.tensor(eff["cp"]), torch.tensor(eff["grip"])
+    th = torch.tensor(value, dtype=torch.float32)
+    th = th.expand(E, *effect_shape(term)).clone() if effect_shape(term) else th.reshape(()).expand(E).clone()
+    with torch.no_grad():
+        x0 = comp.skin(batch, comp.rollout(batch, cp, grip))
+        x1 = comp.skin(batch, comp.rollout(batch, cp, grip, {term: th}))
+    pred = g0 + (x1 - x0)
+    rms = lambda a: 1000.0 * float((a - g1).square().sum(-1).mean().sqrt())  # noqa: E731
+    return {"chamfer_before_mm": round(chamfer_mm(g0, g1), 1), "chamfer_after_mm": round(chamfer_mm(pred, g1), 1),
+            "rms_before_mm": round(rms(g0), 1), "rms_after_mm": round(rms(pred), 1)}
 
 
 def nominal_error_mm(none: dict, companion_cfg: dict, table_height: float) -> float:
@@ -187,15 +257,20 @@ def explained_table(none: dict, eff: dict, term: str, values: list[list[float]],
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.discrepancy_companion", description=__doc__.splitlines()[0])
     p.add_argument("--object", default="cloth", choices=["rope", "cloth"])
-    p.add_argument("--effect", required=True, help="the world's effect (wind, air_drag, table_friction, slip, stiff, heavy)")
+    p.add_argument("--effect", required=True, help="the world's effect (wind, air_drag, table_friction, slip, stiff, "
+                                                   "heavy), or a comma-separated list of them with --term all")
     p.add_argument("--term", required=True, help="the companion's term (wind, linear_drag, quadratic_drag, "
-                                                 "table_friction, gripper_slip, mass_scale)")
-    p.add_argument("--values", required=True, metavar="LIST", help="';'-separated values, ',' inside a vector")
+                                                 "table_friction, gripper_slip, mass_scale), or 'all': every term "
+                                                 "over its generic grid (GRIDS), a matrix effect x term")
+    p.add_argument("--values", default=None, metavar="LIST", help="';'-separated values, ',' inside a vector "
+                                                                  "(required unless --term all)")
     p.add_argument("--form", default="field", choices=["field", "pressure"], help="the companion's wind form")
     p.add_argument("--companion", default="{}", metavar="JSON", help="CompanionConfig overrides")
     p.add_argument("--calibrate", type=int, default=0, metavar="N",
                    help="first fit the companion's nominal config to the effect-free episodes: a random search "
                         "of N configs (seed --seed), the one with the lowest nominal error is used")
+    p.add_argument("--in-sample", action="store_true", help="with --term all: choose and score each term's value "
+                                                               "on all episodes (no hold-out)")
     p.add_argument("--episodes", type=int, default=12, metavar="N")
     p.add_argument("--seed", type=int, default=0, metavar="S")
     p.add_argument("--effects-config", default="effects_discrepancy", metavar="NAME|YAML")
@@ -212,12 +287,19 @@ def main(argv=None) -> int:
     from .companion import EFFECT_TERMS
     from .discrepancy import _generate, load_world
 
-    if args.effect not in EFFECTS:
-        print(f"benchmarks.discrepancy_companion: error: unknown effect {args.effect!r} (known: {', '.join(EFFECTS)})",
+    effects = [e.strip() for e in args.effect.split(",") if e.strip()]
+    bad = [e for e in effects if e not in EFFECTS]
+    if bad or not effects:
+        print(f"benchmarks.discrepancy_companion: error: unknown effect(s) {bad} (known: {', '.join(EFFECTS)})",
               file=sys.stderr)
         return 2
-    if args.term not in EFFECT_TERMS:
-        print(f"benchmarks.discrepancy_companion: error: unknown term {args.term!r} (known: {', '.join(EFFECT_TERMS)})",
+    every = args.term == "all"
+    if not every and args.term not in EFFECT_TERMS:
+        print(f"benchmarks.discrepancy_companion: error: unknown term {args.term!r} (known: {', '.join(EFFECT_TERMS)}, "
+              f"all)", file=sys.stderr)
+        return 2
+    if not every and (len(effects) != 1 or args.values is None):
+        print("benchmarks.discrepancy_companion: error: one --effect and --values are needed unless --term all",
               file=sys.stderr)
         return 2
     try:
@@ -230,16 +312,48 @@ def main(argv=None) -> int:
     t0 = time.time()
     data = Path(args.data_dir)
     sets = {}
-    for eff in ("none", args.effect):
+    for eff in ["none"] + effects:
         ds = _generate(args.object, data / f"{args.object}_{eff}", args.episodes, args.seed, eff, None, print,
                        args.effects_config)
         sets[eff] = ground_truth(ds)
     table_h = load_world(None, args.effects_config).table.height
     if args.calibrate > 0:
         ccfg = calibrate(sets["none"], ccfg, args.calibrate, args.seed, table_h)
-    res = explained_table(sets["none"], sets[args.effect], args.term, _values(args.values), ccfg, table_h)
-    res.update({"object": args.object, "effect": args.effect, "term": args.term, "companion": ccfg,
-                "seconds": round(time.time() - t0, 1)})
+    if not every:
+        res = explained_table(sets["none"], sets[effects[0]], args.term, _values(args.values), ccfg, table_h)
+        res.update({"object": args.object, "effect": effects[0], "term": args.term, "companion": ccfg})
+    else:
+        res = {"object": args.object, "companion": ccfg, "grids": GRIDS, "matrix": {}, "winners": {}}
+        quiet = lambda s: None  # noqa: E731
+        held = heldout_mask(sets["none"]["tasks"])
+        fit = ~held
+        if args.in_sample:  # choose and score on the same (all) episodes
+            held = fit = np.ones_like(held)
+            print(f"every term over its grid; the value with the most explained on all {int(held.sum())} episodes, "
+                  f"scored on the same episodes (in sample); companion {json.dumps(ccfg)}")
+        else:
+            print(f"every term over its grid; the value with the most explained on the {int(fit.sum())} fit episodes, "
+                  f"scored on the {int(held.sum())} held-out ones (a third of each task); companion {json.dumps(ccfg)}")
+        res["heldout"] = [str(n) for n in np.asarray(sets["none"]["names"])[held]]
+        print(f"{'world effect':>16} " + " ".join(f"{t:>15}" for t in GRIDS)
+              + "   winner, gap of the scored episodes with a perfect nominal model")
+        for eff in effects:
+            fit_n, fit_e = subset(sets["none"], fit), subset(sets[eff], fit)
+            ho_n, ho_e = subset(sets["none"], held), subset(sets[eff], held)
+            row = {}
+            for t, g in GRIDS.items():
+                v = explained_table(fit_n, fit_e, t, _values(g), ccfg, table_h, log=quiet)["best"]["value"]
+                row[t] = {"value": v, "explained": explained_table(ho_n, ho_e, t, [v], ccfg, table_h,
+                                                                     log=quiet)["best"]["explained"]}
+            win = max(row, key=lambda t: row[t]["explained"])
+            gap = perfect_nominal_gap(ho_n, ho_e, win, row[win]["value"], ccfg, table_h)
+            res["matrix"][eff] = row
+            res["winners"][eff] = {"term": win, **row[win], **gap}
+            print(f"{eff:>16} " + " ".join(f"{row[t]['explained']:>+15.3f}" for t in GRIDS)
+                  + f"   {win} {','.join(f'{x:g}' for x in row[win]['value'])}: Chamfer {gap['chamfer_before_mm']} -> "
+                  f"{gap['chamfer_after_mm']} mm, vertex RMS {gap['rms_before_mm']} -> {gap['rms_after_mm']} mm",
+                  flush=True)
+    res["seconds"] = round(time.time() - t0, 1)
     print(f"total {res['seconds']} s", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=1))

@@ -162,3 +162,15 @@ def test_calibration_moves_a_poor_twin_towards_the_effect_free_motion():
     best = calibrate(none, poor, 8, 0, 0.0, log=lambda s: None)
     after = nominal_error_mm(none, best, 0.0)
     assert before > 15.0 and after < 0.5 * before, (before, after)
+
+
+def test_a_stiffer_rope_droops_less_when_lifted_by_its_middle():
+    comp = Companion(CompanionConfig(num_nodes=32, bend_compliance=1e-3))
+    pts = _rope()
+    b = _prepare(comp, pts)
+    cp, grip = _grasp_lift(pts[30], lift=0.3)
+    with torch.no_grad():
+        z0 = comp.rollout(b, cp, grip)[0, -1, :, 2]
+        z1 = comp.rollout(b, cp, grip, {"stiffness_scale": torch.tensor([99.0])})[0, -1, :, 2]
+    assert float(z0.max()) > 0.25  # lifted
+    assert float(z1.min()) > float(z0.min()) + 0.005  # the ends hang higher (4 Jacobi passes: XPBD saturates)
