@@ -43,6 +43,14 @@ def _prepare(comp, pts):
     return comp.prepare([pts], UP, 0.0, G, 1.0 / 30.0)
 
 
+def _rope_lifted_by_its_end(num_nodes=24):
+    """A 24-node twin of a 60-point rope and the actions that grasp its first point and lift it."""
+    comp = Companion(CompanionConfig(num_nodes=num_nodes))
+    pts = _rope()
+    cp, grip = _grasp_lift(pts[0])
+    return comp, _prepare(comp, pts), cp, grip
+
+
 @pytest.mark.parametrize("name", sorted(EFFECT_TERMS))
 def test_zero_effect_changes_nothing(name):
     comp = Companion(CompanionConfig(num_nodes=24))
@@ -58,10 +66,7 @@ def test_zero_effect_changes_nothing(name):
 
 
 def test_lift_carries_the_rope_and_a_wind_field_swings_it_downwind():
-    comp = Companion(CompanionConfig(num_nodes=24))
-    pts = _rope()
-    b = _prepare(comp, pts)
-    cp, grip = _grasp_lift(pts[0])
+    comp, b, cp, grip = _rope_lifted_by_its_end()
     with torch.no_grad():
         x0 = comp.skin(b, comp.rollout(b, cp, grip))  # [1, T, N, 3]
         x1 = comp.skin(b, comp.rollout(b, cp, grip, {"wind": torch.tensor([[0.0, 3.0, 0.0]])}))
@@ -75,10 +80,7 @@ def test_lift_carries_the_rope_and_a_wind_field_swings_it_downwind():
 
 
 def test_slipping_grip_drops_the_lifted_rope_and_mass_scale_does_not_lift_it():
-    comp = Companion(CompanionConfig(num_nodes=24))
-    pts = _rope()
-    b = _prepare(comp, pts)
-    cp, grip = _grasp_lift(pts[0])
+    comp, b, cp, grip = _rope_lifted_by_its_end()
     with torch.no_grad():
         z0 = comp.rollout(b, cp, grip)[0, -1, :, 2].mean()
         z_slip = comp.rollout(b, cp, grip, {"gripper_slip": torch.tensor([20.0])})[0, -1, :, 2].mean()
