@@ -137,6 +137,32 @@ def chamfer_mm(a, b):
     return 1000.0 * float((0.5 * (d.min(-1).values.mean(-1) + d.min(-2).values.mean(-1))).mean())
 
 
+def _twin(none: dict, companion_cfg: dict, table_height: float):
+    """The companion and its batch for the episodes of ``none``, started at their ground truth's frame 0
+    (table plane z = table_height, gravity -z)."""
+    import torch
+
+    from .companion import Companion, CompanionConfig
+
+    comp = Companion(CompanionConfig(**companion_cfg))
+    batch = comp.prepare([torch.as_tensor(g[0]) for g in none["gt"]], torch.tensor([0.0, 0.0, 1.0]),
+                         -float(table_height), torch.tensor([0.0, 0.0, -9.81]), float(none["dt"]))
+    return comp, batch
+
+
+def _per_episode(term: str, value: list[float], episodes: int):
+    """One value of a term repeated for every episode: [E] or [E, 3]."""
+    import torch
+
+    from .companion import effect_shape
+
+    want = effect_shape(term)
+    if len(value) != (want[0] if want else 1):
+        raise ValueError(f"term {term} takes {want[0] if want else 1} number(s) per value, got {value}")
+    th = torch.tensor(value, dtype=torch.float32)
+    return th.expand(episodes, *want).clone() if want else th.reshape(()).expand(episodes).clone()
+
+
 def perfect_nominal_gap(none: dict, eff: dict, term: str, value: list[float], companion_cfg: dict,
                         table_height: float) -> dict:
     """The most a twin channel could do for the gap: a nominal model that is exactly the effect-free
@@ -144,16 +170,10 @@ def perfect_nominal_gap(none: dict, eff: dict, term: str, value: list[float], co
     ground truth without and with it."""
     import torch
 
-    from .companion import Companion, CompanionConfig, effect_shape
-
-    comp = Companion(CompanionConfig(**companion_cfg))
+    comp, batch = _twin(none, companion_cfg, table_height)
     g0, g1 = torch.tensor(none["gt"]), torch.tensor(eff["gt"])
-    E = g0.shape[0]
-    batch = comp.prepare([g[0] for g in g0], torch.tensor([0.0, 0.0, 1.0]), -float(table_height),
-                         torch.tensor([0.0, 0.0, -9.81]), float(none["dt"]))
     cp, grip = torch.tensor(eff["cp"]), torch.tensor(eff["grip"])
-    th = torch.tensor(value, dtype=torch.float32)
-    th = th.expand(E, *effect_shape(term)).clone() if effect_shape(term) else th.reshape(()).expand(E).clone()
+    th = _per_episode(term, value, g0.shape[0])
     with torch.no_grad():
         x0 = comp.skin(batch, comp.rollout(batch, cp, grip))
         x1 = comp.skin(batch, comp.rollout(batch, cp, grip, {term: th}))
@@ -167,12 +187,8 @@ def nominal_error_mm(none: dict, companion_cfg: dict, table_height: float) -> fl
     """Mean distance (mm) of the companion's nominal rollout to the effect-free ground truth."""
     import torch
 
-    from .companion import Companion, CompanionConfig
-
-    comp = Companion(CompanionConfig(**companion_cfg))
+    comp, batch = _twin(none, companion_cfg, table_height)
     gt0 = torch.tensor(none["gt"])
-    batch = comp.prepare([g[0] for g in gt0], torch.tensor([0.0, 0.0, 1.0]), -float(table_height),
-                         torch.tensor([0.0, 0.0, -9.81]), float(none["dt"]))
     with torch.no_grad():
         x0 = comp.skin(batch, comp.rollout(batch, torch.tensor(none["cp"]), torch.tensor(none["grip"])))
     return 1000.0 * float((x0 - gt0).norm(dim=-1).mean())
@@ -203,20 +219,15 @@ def explained_table(none: dict, eff: dict, term: str, values: list[list[float]],
     """Nominal error, |D| and the explained fraction per value (module docstring)."""
     import torch
 
-    from .companion import Companion, CompanionConfig, effect_shape
-
     if list(none["names"]) != list(eff["names"]) or none["gt"].shape != eff["gt"].shape:
         raise ValueError("the effect-free and effect datasets must hold the same episodes (same seed and count)")
-    want = effect_shape(term)
-    comp = Companion(CompanionConfig(**companion_cfg))
+    comp, batch = _twin(none, companion_cfg, table_height)
     gt0 = torch.tensor(none["gt"])
     D = torch.tensor(eff["gt"]) - gt0  # [E, T, M, 3]
     E = D.shape[0]
     tasks = np.asarray(eff["tasks"])
     groups = {"all": torch.ones(E, dtype=torch.bool)}
     groups.update({k: torch.tensor(tasks == k) for k in sorted(set(tasks.tolist()))})
-    batch = comp.prepare([g[0] for g in gt0], torch.tensor([0.0, 0.0, 1.0]), -float(table_height),
-                         torch.tensor([0.0, 0.0, -9.81]), float(none["dt"]))
     cp, grip = torch.tensor(eff["cp"]), torch.tensor(eff["grip"])
     res = {"episodes": E, "frames": int(D.shape[1]), "vertices": int(D.shape[2]), "rows": []}
     with torch.no_grad():
@@ -231,10 +242,7 @@ def explained_table(none: dict, eff: dict, term: str, values: list[list[float]],
         log(f"{'value':>16} " + " ".join(f"{k:>8}" for k in groups) + f" {'|Dc| mm':>8}")
         err = []  # [V, E] squared error per episode
         for v in values:
-            if len(v) != (want[0] if want else 1):
-                raise ValueError(f"term {term} takes {want[0] if want else 1} number(s) per value, got {v}")
-            th = torch.tensor(v).expand(E, *want).clone() if want else torch.full((E,), v[0])
-            Dc = comp.skin(batch, comp.rollout(batch, cp, grip, {term: th})) - x0
+            Dc = comp.skin(batch, comp.rollout(batch, cp, grip, {term: _per_episode(term, v, E)})) - x0
             err.append((D - Dc).square().sum(dim=(1, 2, 3)))
             row = {"value": v, "mean_dc_mm": round(1000 * float(Dc.norm(dim=-1).mean()), 1), "explained": {}}
             for k, m in groups.items():
@@ -317,6 +325,20 @@ def main(argv=None) -> int:
                        args.effects_config)
         sets[eff] = ground_truth(ds)
     table_h = load_world(None, args.effects_config).table.height
+    try:
+        res = _study(args, effects, every, sets, ccfg, table_h)
+    except ValueError as exc:
+        print(f"benchmarks.discrepancy_companion: error: {exc}", file=sys.stderr)
+        return 2
+    res["seconds"] = round(time.time() - t0, 1)
+    print(f"total {res['seconds']} s", flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(res, indent=1))
+    return 0
+
+
+def _study(args, effects: list[str], every: bool, sets: dict, ccfg: dict, table_h: float) -> dict:
+    """The calibration and the table (one term) or the matrix (``--term all``) of :func:`main`."""
     if args.calibrate > 0:
         ccfg = calibrate(sets["none"], ccfg, args.calibrate, args.seed, table_h)
     if not every:
@@ -353,11 +375,7 @@ def main(argv=None) -> int:
                   + f"   {win} {','.join(f'{x:g}' for x in row[win]['value'])}: Chamfer {gap['chamfer_before_mm']} -> "
                   f"{gap['chamfer_after_mm']} mm, vertex RMS {gap['rms_before_mm']} -> {gap['rms_after_mm']} mm",
                   flush=True)
-    res["seconds"] = round(time.time() - t0, 1)
-    print(f"total {res['seconds']} s", flush=True)
-    if args.json:
-        Path(args.json).write_text(json.dumps(res, indent=1))
-    return 0
+    return res
 
 
 if __name__ == "__main__":
