@@ -70,7 +70,7 @@ from typing import Mapping, Optional, Sequence
 import torch
 from torch import nn
 
-from soma_ros.core.spring_mass import farthest_point_sampling
+from soma_ros.core.spring_mass import farthest_point_sampling, neighbour_pairs, skin_weights
 
 __all__ = ["CompanionConfig", "CompanionBatch", "Companion", "EFFECT_TERMS", "effect_shape"]
 
@@ -175,23 +175,6 @@ def _is_sheet(rest: torch.Tensor) -> bool:
     return bool(ev[1] > 0.3 * ev[2] and ev[0] < 0.2 * ev[1])
 
 
-def _pairs(d: torch.Tensor, k: int, radius: float, skip: int = 0) -> torch.Tensor:
-    """[2, E] pairs (i < j, unique) of each node and its nearest k nodes beyond the first ``skip``
-    within ``radius`` (d: [K, K] distances, inf on the diagonal)."""
-    K = d.shape[0]
-    kk = min(skip + k, K - 1)
-    if kk <= skip:
-        return torch.zeros(2, 0, dtype=torch.long)
-    nd, nj = d.topk(kk, dim=1, largest=False)
-    nd, nj = nd[:, skip:], nj[:, skip:]
-    ok = nd <= radius
-    if skip == 0:
-        ok[:, 0] = True  # every node keeps its nearest neighbour
-    ii = torch.arange(K)[:, None].expand_as(nj)
-    a, b = ii[ok], nj[ok]
-    return torch.unique(torch.stack([torch.minimum(a, b), torch.maximum(a, b)]), dim=1)
-
-
 class Companion(nn.Module):
     """Batched position-based (XPBD) spring twin with effect terms (module docstring).
 
@@ -243,8 +226,8 @@ class Companion(nn.Module):
             d = torch.cdist(rest, rest)
             d.fill_diagonal_(math.inf)
             spacing = max(float(d.min(dim=1).values.median()), 1e-6)
-            stretch = _pairs(d, c.neighbors, c.spring_radius_factor * spacing)
-            bend = _pairs(d, c.bend_neighbors, c.bend_radius_factor * spacing, skip=c.neighbors)
+            stretch = neighbour_pairs(d, c.neighbors, c.spring_radius_factor * spacing)
+            bend = neighbour_pairs(d, c.bend_neighbors, c.bend_radius_factor * spacing, skip=c.neighbors)
             if bend.numel():  # a bending pair that is also a stretch pair stays a stretch pair
                 key_s = set((stretch[0] * K + stretch[1]).tolist())
                 keep = torch.tensor([int(a) * K + int(b) not in key_s for a, b in bend.t()], dtype=torch.bool)
@@ -253,10 +236,7 @@ class Companion(nn.Module):
             kind = torch.cat([torch.ones(stretch.shape[1]), 2 * torch.ones(bend.shape[1])])
             rest_len = (rest[pairs[0]] - rest[pairs[1]]).norm(dim=-1).clamp_min(1e-6)
             deg = torch.bincount(pairs.reshape(-1), minlength=K).float()
-            kc = min(c.carry_neighbors, K)
-            cd, ci = torch.cdist(means, rest).topk(kc, dim=1, largest=False)
-            w = 1.0 / (cd + 0.25 * spacing).square()
-            w = w / w.sum(dim=1, keepdim=True)
+            ci, w = skin_weights(means, rest, c.carry_neighbors, spacing)
             floor = (rest @ nrm + off).clamp(min=0.0, max=c.contact_offset_max)
             rows.append((rest, pairs, rest_len, kind, deg, floor, ci, w))
         E = max(r[1].shape[1] for r in rows)

@@ -56,7 +56,8 @@ from torch import nn
 
 from .config import from_dict, to_dict
 
-__all__ = ["SpringMassConfig", "SpringMassEpisode", "SpringMass", "farthest_point_sampling"]
+__all__ = ["SpringMassConfig", "SpringMassEpisode", "SpringMass", "farthest_point_sampling", "neighbour_pairs",
+           "skin_weights"]
 
 
 @dataclass
@@ -114,6 +115,33 @@ def farthest_point_sampling(points: torch.Tensor, k: int) -> torch.Tensor:
         idx[i] = j
         dist = torch.minimum(dist, (p - p[j]).norm(dim=-1))
     return idx
+
+
+def neighbour_pairs(d: torch.Tensor, k: int, radius: float, skip: int = 0) -> torch.Tensor:
+    """[2, E] node pairs (i < j, unique): each node and its nearest ``k`` nodes beyond the first
+    ``skip``, within ``radius`` (d: [K, K] distances, inf on the diagonal). With ``skip`` 0 every
+    node keeps at least its nearest neighbour."""
+    K = d.shape[0]
+    kk = min(skip + k, K - 1)
+    if kk <= skip:
+        return torch.zeros(2, 0, dtype=torch.long)
+    nd, nj = d.topk(kk, dim=1, largest=False)
+    nd, nj = nd[:, skip:], nj[:, skip:]
+    ok = nd <= radius
+    if skip == 0:
+        ok[:, 0] = True
+    ii = torch.arange(K)[:, None].expand_as(nj)
+    a, b = ii[ok], nj[ok]
+    return torch.unique(torch.stack([torch.minimum(a, b), torch.maximum(a, b)]), dim=1)
+
+
+def skin_weights(points: torch.Tensor, nodes: torch.Tensor, k: int,
+                 spacing: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Linear-blend skinning of points [N, 3] to their ``k`` nearest nodes [K, 3]: (indices [N, k],
+    weights [N, k], rows sum to 1, inverse-square distance softened by a quarter node spacing)."""
+    cd, ci = torch.cdist(points, nodes).topk(min(k, nodes.shape[0]), dim=1, largest=False)
+    w = 1.0 / (cd + 0.25 * spacing).square()
+    return ci, w / w.sum(dim=1, keepdim=True)
 
 
 def _logit(x: float) -> float:
@@ -216,14 +244,7 @@ class SpringMass(nn.Module):
             d = torch.cdist(rest, rest)
             d.fill_diagonal_(math.inf)
             spacing = float(d.min(dim=1).values.median())
-            kk = min(c.neighbors, K - 1)
-            nd, nj = d.topk(kk, dim=1, largest=False)
-            ok = nd <= c.spring_radius_factor * max(spacing, 1e-6)
-            ok[:, 0] = True  # every node keeps at least its nearest neighbour
-            ii = torch.arange(K)[:, None].expand_as(nj)
-            a, b = ii[ok], nj[ok]
-            pairs = torch.stack([torch.minimum(a, b), torch.maximum(a, b)])
-            pairs = torch.unique(pairs, dim=1)
+            pairs = neighbour_pairs(d, c.neighbors, c.spring_radius_factor * max(spacing, 1e-6))
             rest_len = (rest[pairs[0]] - rest[pairs[1]]).norm(dim=-1).clamp_min(1e-6)
             # neighbour lists (for node rotations)
             deg = torch.bincount(pairs.reshape(-1), minlength=K)
@@ -236,11 +257,7 @@ class SpringMass(nn.Module):
                 nbr[t, fill[t]] = s
                 fill[t] += 1
             # splat skinning
-            kc = min(c.carry_neighbors, K)
-            ds = torch.cdist(means, rest)
-            cd, ci = ds.topk(kc, dim=1, largest=False)
-            w = 1.0 / (cd + 0.25 * spacing).square()
-            w = w / w.sum(dim=1, keepdim=True)
+            ci, w = skin_weights(means, rest, c.carry_neighbors, spacing)
             # table floor
             nrm = scene.plane_normal.detach().to(torch.float32).cpu()
             off = float(scene.plane_offset)
