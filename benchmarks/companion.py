@@ -192,12 +192,6 @@ class Companion(nn.Module):
         self.log_drag = nn.Parameter(torch.tensor(math.log(c.drag)))
         self.friction = nn.Parameter(torch.tensor(float(c.friction)))
 
-    def describe(self) -> dict[str, float]:
-        with torch.no_grad():
-            return {"stretch_compliance": float(self.log_stretch.exp()), "bend_compliance": float(self.log_bend.exp()),
-                    "grip_compliance": float(self.log_grip.exp()), "drag_per_s": float(self.log_drag.exp()),
-                    "friction": float(self.friction.clamp_min(0.0))}
-
     # ------------------------------------------------------------------ set-up
     @torch.no_grad()
     def prepare(self, inits: Sequence[torch.Tensor], plane_normal: torch.Tensor, plane_offset: float,
@@ -342,7 +336,7 @@ class Companion(nn.Module):
                 cps = prev + ((s + 1) / c.substeps) * (cp - prev)
                 acc = ext
                 if wind_p is not None:
-                    acc = acc + self._pressure(batch, x, wind_p)
+                    acc = acc + self._pressure(batch, x, wind_p, si3, sj3)
                 if lin is not None:
                     acc = acc - lin * v
                 if quad is not None:
@@ -386,12 +380,11 @@ class Companion(nn.Module):
         return torch.stack([out[t] for t in keep], dim=1)
 
     @staticmethod
-    def _pressure(batch: CompanionBatch, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    def _pressure(batch: CompanionBatch, x: torch.Tensor, w: torch.Tensor, si3: torch.Tensor,
+                  sj3: torch.Tensor) -> torch.Tensor:
         """The part of the field w [B, 1, 3] a surface element feels: along its normal (sheet) or
         across its tangent (line); local shape from the covariance of each node's stretch edges."""
         B, K = x.shape[:2]
-        si3 = batch.si[..., None].expand(-1, -1, 3)
-        sj3 = batch.sj[..., None].expand(-1, -1, 3)
         d = torch.gather(x, 1, sj3) - torch.gather(x, 1, si3)
         d = d * (batch.kind == 1).to(x.dtype)[..., None]
         d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-9)

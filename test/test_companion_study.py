@@ -43,6 +43,11 @@ def _prepare(comp, pts):
     return comp.prepare([pts], UP, 0.0, G, 1.0 / 30.0)
 
 
+def _ends3(b):
+    """The constraint ends as gather indices [B, E, 3], as the rollout passes them to ``_pressure``."""
+    return b.si[..., None].expand(-1, -1, 3), b.sj[..., None].expand(-1, -1, 3)
+
+
 def _rope_lifted_by_its_end(num_nodes=24):
     """A 24-node twin of a 60-point rope and the actions that grasp its first point and lift it."""
     comp = Companion(CompanionConfig(num_nodes=num_nodes))
@@ -95,14 +100,14 @@ def test_pressure_wind_acts_along_a_sheet_normal_only():
     b = _prepare(comp, pts)
     assert b.sheet
     x = b.rest
-    flat = comp._pressure(b, x, torch.tensor([[[0.0, 5.0, 0.0]]]))
-    down = comp._pressure(b, x, torch.tensor([[[0.0, 0.0, -5.0]]]))
+    flat = comp._pressure(b, x, torch.tensor([[[0.0, 5.0, 0.0]]]), *_ends3(b))
+    down = comp._pressure(b, x, torch.tensor([[[0.0, 0.0, -5.0]]]), *_ends3(b))
     assert float(flat.norm(dim=-1).max()) < 1e-3  # a horizontal wind across a flat cloth: nothing
     assert torch.allclose(down, torch.tensor([0.0, 0.0, -5.0]).expand_as(down), atol=1e-3)
     # a line feels the part across its tangent
     rb = _prepare(comp, _rope())
     assert not rb.sheet
-    across = comp._pressure(rb, rb.rest, torch.tensor([[[1.0, 2.0, 0.0]]]))
+    across = comp._pressure(rb, rb.rest, torch.tensor([[[1.0, 2.0, 0.0]]]), *_ends3(rb))
     assert torch.allclose(across.mean(dim=1)[0], torch.tensor([0.0, 2.0, 0.0]), atol=0.05)
 
 
