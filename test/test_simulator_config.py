@@ -74,3 +74,12 @@ def test_effect_spec_parsing():
     assert s.to_yaml_dict() == {"name": "support", "key": "table", "tau": 0.02}
     with pytest.raises(FileNotFoundError):
         load_model_config("no_such_model")
+
+
+def test_exponent_floats_read_as_floats():
+    """PyYAML reads ``1e-3`` (no dot) as a string; a float field takes it as YAML 1.2 does."""
+    patch = yaml.safe_load("dynamics: {max_speed: 2e1}")
+    assert patch["dynamics"]["max_speed"] == "2e1"  # the YAML 1.1 quirk this guards against
+    assert load_model_config(patch).dynamics.max_speed == 20.0
+    with pytest.raises(ConfigError, match=r"dynamics\.max_speed: expected float"):
+        load_model_config({"dynamics": {"max_speed": "fast"}})
