@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -384,3 +385,41 @@ def test_scan_profiles_the_residual_and_rejects_an_unknown_parameter(clean_run, 
     assert "no term 'nope'" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(base + ["--values", "1"])  # neither mode
+
+
+def test_headroom_ratio_and_passable():
+    from benchmarks.discrepancy_headroom import headroom
+
+    h = headroom({"rmse": 0.04, "chamfer": 0.03}, {"rmse": 0.02, "chamfer": 0.01})
+    assert h == pytest.approx({"rmse": 2.0, "chamfer": 3.0, "passable": True})
+    assert not headroom({"rmse": 0.039, "chamfer": 0.03}, {"rmse": 0.02, "chamfer": 0.01})["passable"]
+    missing = headroom({"rmse": 0.04, "chamfer": None}, {"rmse": 0.02, "chamfer": 0.0})
+    assert missing["chamfer"] is None and not missing["passable"]
+
+
+def test_headroom_cli_scores_the_workflow_heldout_episodes(clean_run, tmp_path, capsys):
+    """The effect-free data against itself: headroom exactly 1, the workflow's held-out episodes;
+    a dataset of another world seed is refused (not a twin)."""
+    from benchmarks.discrepancy_headroom import main
+    from trainer.config import load_train_config
+    from trainer.discrepancy import heldout_names
+    from trainer.evaluate import EvalContext
+
+    root, data = clean_run
+    out = tmp_path / "h.json"
+    args = ["--run", str(root / "run"), "--none", str(data), "--config", "fast", "--json", str(out)]
+    assert main(args + ["--data", str(data)]) == 0
+    rep = json.loads(out.read_text())["datasets"][data.name]
+    assert rep["headroom"]["rmse"] == 1.0 and rep["headroom"]["chamfer"] == 1.0
+    assert not rep["headroom"]["passable"]
+    refs = EvalContext(data, load_train_config(root / "run" / "train_config.yaml"), root / "run" / "scene").refs
+    assert sorted(rep["episodes"]) == sorted(heldout_names(refs, load_discrepancy_config("fast")))
+    other = tmp_path / "other_seed"
+    shutil.copytree(data, other)
+    manifest = json.loads((other / "manifest.json").read_text())
+    (other / "manifest.json").write_text(json.dumps({**manifest, "seed": manifest["seed"] + 1}))
+    assert main(args + ["--data", str(other)]) == 2
+    err = capsys.readouterr().err
+    assert "not a twin" in err and "seed" in err
+    assert main(["--run", str(tmp_path), "--none", str(data), "--data", str(data)]) == 2
+    assert "not a soma train run folder" in capsys.readouterr().err
