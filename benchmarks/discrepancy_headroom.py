@@ -50,17 +50,16 @@ def headroom(before: dict, floor: dict, metrics: Sequence[str] = METRICS) -> dic
 
 def evaluate_unchanged(run: Path, data: Path, cfg, out: Optional[Path], log=print) -> dict:
     """The unchanged model's metrics on the workflow's held-out episodes of ``data`` (metrics.json form)."""
-    from soma_ros.core.checkpoint import load_checkpoint
     from trainer.baselines import SimulatorModel
     from trainer.config import load_train_config
-    from trainer.discrepancy import HELDOUT, heldout_names
+    from trainer.discrepancy import HELDOUT, heldout_names, load_model
     from trainer.evaluate import EvalConfig, EvalContext, evaluate_models
     from trainer.evaluate_metrics import EvalMetricsConfig
 
     ctx = EvalContext(data, load_train_config(run / "train_config.yaml"), run / "scene")
     hold = set(heldout_names(ctx.refs, cfg))
     ctx.refs = [dataclasses.replace(r, split=HELDOUT if r.name in hold else "fit") for r in ctx.refs]
-    sim = load_checkpoint(run / "checkpoint.pt").set_passive_friction(cfg.passive_friction).eval()
+    sim = load_model(run / "checkpoint.pt", cfg)
     ecfg = EvalConfig(metrics=EvalMetricsConfig(with_lpips=False), frame_stride=cfg.eval_frame_stride,
                       contact_sheets=False, progress=False)
     with tempfile.TemporaryDirectory() as tmp:

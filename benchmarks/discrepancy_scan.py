@@ -44,16 +44,15 @@ def main(argv=None) -> int:
     import torch
 
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1") or 1))
-    from soma_ros.core.checkpoint import load_checkpoint
     from trainer.config import load_train_config
-    from trainer.discrepancy import episode_obs, load_discrepancy_config, residual_per_frame
+    from trainer.discrepancy import episode_obs, load_discrepancy_config, load_model, residual_per_frame
     from trainer.evaluate import EvalContext
 
     values = [json.loads(v) for v in (args.values.split(";") if ";" in args.values else args.values.split(","))]
     run = Path(args.run)
     cfg = load_discrepancy_config(args.config)
     ctx = EvalContext(args.data, load_train_config(run / "train_config.yaml"), run / "scene")
-    sim = load_checkpoint(run / "checkpoint.pt").set_passive_friction(cfg.passive_friction).eval()
+    sim = load_model(run / "checkpoint.pt", cfg)
     refs = [r for r in ctx.refs if args.split is None or r.split == args.split]
     if not refs:
         print(f"discrepancy_scan: error: no episodes (split {args.split})", file=sys.stderr)

@@ -59,10 +59,9 @@ def main(argv=None) -> int:
     import torch
 
     torch.set_num_threads(1)
-    from soma_ros.core.checkpoint import load_checkpoint
     from trainer.config import load_train_config
-    from trainer.discrepancy import (EpisodeObs, _rollout, heldout_names, load_discrepancy_config, rank_candidates,
-                                     residual_per_frame)
+    from trainer.discrepancy import (EpisodeObs, _rollout, heldout_names, load_discrepancy_config, load_model,
+                                     rank_candidates, residual_per_frame)
     from trainer.evaluate import EvalContext
 
     over = {}
@@ -81,7 +80,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     ctx = EvalContext(args.data, load_train_config(run / "train_config.yaml"), run / "scene", cache_dir=out / "cache")
-    sim = load_checkpoint(run / "checkpoint.pt").set_passive_friction(cfg.passive_friction).eval()
+    sim = load_model(run / "checkpoint.pt", cfg)
     refs = ctx.refs
     hold = set(heldout_names(refs, cfg))
     held = [r for r in refs if r.name in hold]

@@ -423,3 +423,16 @@ def test_headroom_cli_scores_the_workflow_heldout_episodes(clean_run, tmp_path, 
     assert "not a twin" in err and "seed" in err
     assert main(["--run", str(tmp_path), "--none", str(data), "--data", str(data)]) == 2
     assert "not a soma train run folder" in capsys.readouterr().err
+
+
+def test_load_model_exempts_the_trained_terms_only_when_asked(clean_run):
+    from trainer.discrepancy import load_model
+
+    root, _ = clean_run
+    ck = root / "run" / "checkpoint.pt"
+    sim = load_model(ck, load_discrepancy_config("default"))
+    assert sim.config.dynamics.passive_friction == 0.5 and sim.config.dynamics.passive_exempt == []
+    sim = load_model(ck, load_discrepancy_config("default", {"passive_exempt_trained": True}))
+    assert sim.config.dynamics.passive_exempt == ["robot"]  # not gravity / support (reference terms)
+    sim.add_effect({"name": "wind", "direct": True})
+    assert sim.config.dynamics.passive_exempt == ["robot"]  # a candidate added later stays bounded

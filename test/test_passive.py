@@ -116,6 +116,32 @@ def test_which_forces_act():
     assert calm.split_active(ctx(torch.zeros_like(x)))[2] == 0
     t2, d2 = es.split(ctx(torch.zeros_like(x)))
     assert torch.equal(t2, total) and torch.equal(d2, direct)
+    # an exempt direct term (DynamicsConfig.passive_exempt) makes the step active; forces unchanged
+    t3, d3, acting3 = es.split_active(ctx(torch.zeros_like(x)), exempt=["wind"])
+    assert acting3 == 2 and torch.equal(t3, total) and torch.equal(d3, direct)
+    assert calm.split_active(ctx(torch.zeros_like(x)), exempt=["wind"])[2] == 0  # zero force: still untouched
+
+
+def test_an_exempt_direct_term_is_not_braked_by_the_rule():
+    """A direct push of 3 m/s^2 (below mu |g| = 4.9) on the resting object: under the rule its root
+    does not move; with the term exempt (a term the model was trained with) the step is not passive and
+    the object moves as without the rule, bit for bit. Unknown keys are refused."""
+    far = RobotAction(torch.tensor([[2.0, 2.0, 0.5]]), 1.0)
+    moved = {}
+    for mu, exempt in ((None, None), (0.5, None), (0.5, ["push"])):
+        sim, s0 = _sim(mu)
+        sim.add_effect({"name": "wind", "key": "push", "direct": True, "accel": [3.0, 0.0, 0.0]})
+        sim.set_passive_friction(mu, exempt)
+        with torch.no_grad():
+            s0 = sim.init_state(synthetic_rope(600, seed=0, center=(0.0, 0.0, 0.0)), SceneContext.table())
+            end = sim.rollout(s0, [far] * 10)[-1]
+            L = sim.hierarchy.root_level
+            moved[(mu, bool(exempt))] = (end.positions[L] - s0.positions[L], end.means - s0.means)
+    assert float(moved[(None, False)][0][0, 0]) > 0.01  # the root slides downwind
+    assert float(moved[(0.5, False)][0][0, :2].abs().max()) == 0.0  # the rule holds the root in the plane
+    assert all(torch.equal(a, b) for a, b in zip(moved[(0.5, True)], moved[(None, False)]))
+    with pytest.raises(ValueError, match="no effect 'nope'"):
+        sim.set_passive_friction(0.5, ["nope"])
 
 
 def test_config_validation_and_checkpoint_default():
@@ -127,6 +153,10 @@ def test_config_validation_and_checkpoint_default():
     cfg.dynamics.passive_friction = 0.5
     cfg.dynamics.passive_contact_m = 0.0
     with pytest.raises(ConfigError, match="passive_contact_m"):
+        cfg.dynamics.validate()
+    cfg.dynamics.passive_contact_m = 0.01
+    cfg.dynamics.passive_exempt = ["robot", ""]
+    with pytest.raises(ConfigError, match="passive_exempt"):
         cfg.dynamics.validate()
 
 

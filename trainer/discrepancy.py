@@ -118,6 +118,8 @@ class DiscrepancyConfig:
     # parameters tried on the whole fit set (0, the unchanged model, always is)
     passive_friction: Optional[float] = 0.5  # the simulator's passive-object rule in every rollout, as the
     # live node runs it (friction coefficient); None: the checkpoint's setting; < 0: off
+    passive_exempt_trained: bool = False  # the terms the model was trained with (its robot coupling) make a
+    # step non-passive (DynamicsConfig.passive_exempt); candidates added by the workflow never do
     max_fit_episodes: int = 0  # 0 = all
     max_heldout_episodes: int = 0  # 0 = all
     bootstrap: int = 2000
@@ -249,6 +251,13 @@ def reference_dataset(cfg: DiscrepancyConfig, extra: dict) -> tuple[Optional[Pat
     if not d or not (Path(d) / "manifest.json").is_file():
         return None, False
     return Path(d), True
+
+
+def load_model(checkpoint: Path, cfg: "DiscrepancyConfig") -> Simulator:
+    """The unchanged model of a checkpoint with the workflow's passive-object rule, in eval mode."""
+    sim = load_checkpoint(checkpoint)
+    trained = [k for k, e in sim.effects.terms.items() if not e.in_reference]
+    return sim.set_passive_friction(cfg.passive_friction, trained if cfg.passive_exempt_trained else None).eval()
 
 
 def point_residual(points: torch.Tensor, means: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -617,8 +626,7 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
     train_cfg = load_train_config(cfg_path)
     ref_data, is_training_data = reference_dataset(cfg, read_checkpoint(ck)["extra"])  # fail before any work
     ctx = EvalContext(data, train_cfg, scene_dir, cache_dir=out / "cache")
-    sim = load_checkpoint(ck).set_passive_friction(cfg.passive_friction)
-    sim.eval()
+    sim = load_model(ck, cfg)
     torch.manual_seed(cfg.seed)
     scene = ctx.scene
 

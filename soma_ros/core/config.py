@@ -194,6 +194,12 @@ class DynamicsConfig:
     the object touches the support (its lowest splat within ``passive_contact_m`` of its
     lowest height in the episode's initial state) Coulomb friction with coefficient
     ``passive_friction`` brakes the horizontal speed.
+
+    ``passive_exempt`` (effect keys; default none): a step on which one of these terms exerts a
+    force is not passive, though the term is direct. For the terms the model was trained with
+    (e.g. its direct robot coupling): their steps are inside its training data, where no such
+    rule acted, and the rule's friction added on top of the learned drag doubled the resimulated
+    rope's error (README, Discrepancy). Terms added later (a candidate wind) stay bounded by it.
     """
 
     accel_scale: float = 9.81
@@ -203,6 +209,7 @@ class DynamicsConfig:
     residual_factor: float = 2.0
     passive_friction: Optional[float] = None
     passive_contact_m: float = 0.01
+    passive_exempt: list[str] = field(default_factory=list)
 
     def validate(self, where: str = "dynamics") -> None:
         for name in ("accel_scale", "velocity_scale", "max_speed", "max_log_stretch", "residual_factor",
@@ -213,6 +220,8 @@ class DynamicsConfig:
         pf = self.passive_friction
         if pf is not None and not (math.isfinite(pf) and pf >= 0):
             raise ConfigError(f"{where}.passive_friction: must be None (off) or finite and >= 0, got {pf}")
+        if not all(isinstance(k, str) and k for k in self.passive_exempt):
+            raise ConfigError(f"{where}.passive_exempt: must be a list of effect keys, got {self.passive_exempt!r}")
 
 
 @dataclass

@@ -67,7 +67,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Callable, ClassVar, Iterable, Optional, Union
+from typing import Callable, ClassVar, Iterable, Optional, Sequence, Union
 
 import torch
 from torch import nn
@@ -284,13 +284,14 @@ class EffectSet(nn.Module):
         total, direct, _ = self.split_active(ctx, check_active=False)
         return total, direct
 
-    def split_active(self, ctx: EffectContext, check_active: bool = True
+    def split_active(self, ctx: EffectContext, check_active: bool = True, exempt: Sequence[str] = ()
                      ) -> tuple[torch.Tensor, Optional[torch.Tensor], int]:
         """:meth:`split` plus which non-reference forces act (exert a force on any splat):
         0 = none (only gravity and the support: the object is untouched), 1 = only ``direct``
         ones, 2 = one that is not ``direct``. Below 2 the network's output is the object's
         response to gravity, the support and the motion the direct effects cause, to no other
-        force (the passive-object rule of :mod:`.simulator` applies). Always 2 when
+        force (the passive-object rule of :mod:`.simulator` applies). A term whose key is in
+        ``exempt`` counts as not direct here (``DynamicsConfig.passive_exempt``). Always 2 when
         ``check_active`` is False, which skips the check and its device synchronisations."""
         total = ctx.positions.new_zeros((ctx.num_nodes, 3))
         direct = None
@@ -300,8 +301,9 @@ class EffectSet(nn.Module):
             if tuple(f.shape) != (ctx.num_nodes, 3):
                 raise RuntimeError(f"effect {key!r} returned shape {list(f.shape)}, expected [{ctx.num_nodes}, 3]")
             spec = self._specs[key]
-            if level < 2 and not eff.in_reference and (level < 1 or not spec.direct) and bool((f != 0).any()):
-                level = 1 if spec.direct else 2
+            as_direct = spec.direct and key not in exempt
+            if level < 2 and not eff.in_reference and (level < 1 or not as_direct) and bool((f != 0).any()):
+                level = 1 if as_direct else 2
             if spec.feature:
                 total = total + f
             if spec.direct:

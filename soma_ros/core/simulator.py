@@ -628,18 +628,26 @@ class Simulator(nn.Module):
         if action is not None and not isinstance(action, RobotAction):
             raise TypeError(f"step: action must be a RobotAction or None, got {type(action).__name__}")
         passive_rule = self.config.dynamics.passive_friction is not None
-        f, f_direct, acting = self.effects.split_active(self.effect_context(state, action), check_active=passive_rule)
+        f, f_direct, acting = self.effects.split_active(self.effect_context(state, action), check_active=passive_rule,
+                                                        exempt=self.config.dynamics.passive_exempt)
         nxt, _ = self._advance(state, action, f, state.episode.reference, f_direct, passive=acting if passive_rule else 2)
         return nxt
 
     forward = step
 
-    def set_passive_friction(self, mu: Optional[float]) -> "Simulator":
+    def set_passive_friction(self, mu: Optional[float], exempt: Optional[Sequence[str]] = None) -> "Simulator":
         """Switch the passive-object rule (``DynamicsConfig.passive_friction``): None leaves the
-        model's setting, a negative value turns it off, any other is its friction coefficient."""
+        model's setting, a negative value turns it off, any other is its friction coefficient.
+        ``exempt``: effect keys whose steps are not passive (``DynamicsConfig.passive_exempt``;
+        None leaves the setting)."""
         if mu is not None:
             self.config.dynamics.passive_friction = None if mu < 0 else float(mu)
-            self.config.dynamics.validate()
+        if exempt is not None:
+            unknown = [k for k in exempt if k not in self.effects.terms]
+            if unknown:
+                raise ValueError(f"set_passive_friction: no effect {unknown[0]!r} (has {', '.join(self.effects.terms)})")
+            self.config.dynamics.passive_exempt = list(exempt)
+        self.config.dynamics.validate()
         return self
 
     def rollout(self, state: SimState, actions: Sequence[Optional[RobotAction]]) -> list[SimState]:
