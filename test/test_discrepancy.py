@@ -425,14 +425,14 @@ def test_headroom_cli_scores_the_workflow_heldout_episodes(clean_run, tmp_path, 
     assert "not a soma train run folder" in capsys.readouterr().err
 
 
-def test_load_model_exempts_the_trained_terms_only_when_asked(clean_run):
+def test_load_model_exempts_the_trained_terms_by_default(clean_run):
     from trainer.discrepancy import load_model
 
     root, _ = clean_run
     ck = root / "run" / "checkpoint.pt"
-    sim = load_model(ck, load_discrepancy_config("default"))
+    sim = load_model(ck, load_discrepancy_config("default", {"passive_exempt_trained": False}))
     assert sim.config.dynamics.passive_friction == 0.5 and sim.config.dynamics.passive_exempt == []
-    sim = load_model(ck, load_discrepancy_config("default", {"passive_exempt_trained": True}))
+    sim = load_model(ck, load_discrepancy_config("default"))
     assert sim.config.dynamics.passive_exempt == ["robot"]  # not gravity / support (reference terms)
     sim.add_effect({"name": "wind", "direct": True})
     assert sim.config.dynamics.passive_exempt == ["robot"]  # a candidate added later stays bounded
