@@ -24,7 +24,6 @@ of an effect at a given magnitude can pass with a given model.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import sys
@@ -52,13 +51,12 @@ def evaluate_unchanged(run: Path, data: Path, cfg, out: Optional[Path], log=prin
     """The unchanged model's metrics on the workflow's held-out episodes of ``data`` (metrics.json form)."""
     from trainer.baselines import SimulatorModel
     from trainer.config import load_train_config
-    from trainer.discrepancy import HELDOUT, heldout_names, load_model
+    from trainer.discrepancy import HELDOUT, load_model, mark_heldout
     from trainer.evaluate import EvalConfig, EvalContext, evaluate_models
     from trainer.evaluate_metrics import EvalMetricsConfig
 
     ctx = EvalContext(data, load_train_config(run / "train_config.yaml"), run / "scene")
-    hold = set(heldout_names(ctx.refs, cfg))
-    ctx.refs = [dataclasses.replace(r, split=HELDOUT if r.name in hold else "fit") for r in ctx.refs]
+    mark_heldout(ctx, cfg)
     sim = load_model(run / "checkpoint.pt", cfg)
     ecfg = EvalConfig(metrics=EvalMetricsConfig(with_lpips=False), frame_stride=cfg.eval_frame_stride,
                       contact_sheets=False, progress=False)

@@ -238,6 +238,13 @@ def heldout_names(refs, cfg: DiscrepancyConfig) -> list[str]:
     return [r.name for r in refs if r.name in chosen]
 
 
+def mark_heldout(ctx, cfg: DiscrepancyConfig) -> None:
+    """Relabel an evaluation context's episodes: split HELDOUT for :func:`heldout_names`, the rest
+    "discrepancy_fit" (the evaluation then scores the split HELDOUT; the store looks episodes up by name)."""
+    hold = set(heldout_names(ctx.refs, cfg))
+    ctx.refs = [dataclasses.replace(r, split=HELDOUT if r.name in hold else "discrepancy_fit") for r in ctx.refs]
+
+
 def reference_dataset(cfg: DiscrepancyConfig, extra: dict) -> tuple[Optional[Path], bool]:
     """(dataset of the own-error control or None, whether it is the model's training dataset):
     ``cfg.reference_data``, else the checkpoint's training dataset (``extra["dataset"]``) when
@@ -635,9 +642,7 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
     scene = ctx.scene
 
     # ---- episodes
-    hold = set(heldout_names(ctx.refs, cfg))
-    # relabel: the evaluation below scores the split HELDOUT (the store looks episodes up by name)
-    ctx.refs = [dataclasses.replace(r, split=HELDOUT if r.name in hold else "discrepancy_fit") for r in ctx.refs]
+    mark_heldout(ctx, cfg)
     held = [r for r in ctx.refs if r.split == HELDOUT]
     fit = [r for r in ctx.refs if r.split != HELDOUT]
     if not held or not fit:
