@@ -16,6 +16,15 @@ It is an estimate, not a strict bound: a term can also remove part of the model'
 (README, Discrepancy, own-error control). The workflow's own conventions are used: its held-out
 episodes (stratified by task), its passive-object rule and its evaluation frame stride, so the
 figures are the ``gap_before`` that ``soma discrepancy`` and ``benchmarks.discrepancy`` report.
+It also scores a *frozen object* on the effect-free twin (the first frame's splats, never moved:
+:class:`trainer.baselines.StaticModel`) and prints frozen / floor, the metric's span over the
+model. For depth RMSE on a thin or flat object it is close to a ceiling on any headroom: where the
+simulated object misses the measured one, a pixel's error is the measured object's height above
+whatever the simulation shows there, however far the miss, just as for a frozen object. So an
+effect that leaves the object in the same height range can raise the model's depth RMSE to about
+the frozen object's and no further; where frozen / floor is under 2, no such effect can be halved
+on depth RMSE. (Chamfer has no such ceiling: an object blown off the table costs metres.)
+
 It needs one evaluation of the unchanged model per dataset (rope, 6 held-out episodes: ~20 s on
 one CPU core; cloth, 4: ~2.5 min), not the workflow's hour, and tells beforehand whether a test
 of an effect at a given magnitude can pass with a given model.
@@ -47,9 +56,11 @@ def headroom(before: dict, floor: dict, metrics: Sequence[str] = METRICS) -> dic
     return out
 
 
-def evaluate_unchanged(run: Path, data: Path, cfg, out: Optional[Path], log=print) -> dict:
-    """The unchanged model's metrics on the workflow's held-out episodes of ``data`` (metrics.json form)."""
-    from trainer.baselines import SimulatorModel
+def evaluate_unchanged(run: Path, data: Path, cfg, out: Optional[Path], log=print, static: bool = False) -> dict:
+    """The unchanged model's metrics on the workflow's held-out episodes of ``data`` (metrics.json form);
+    with ``static`` those of a frozen object instead (:class:`trainer.baselines.StaticModel`: the
+    first frame's splats, never moved), on the same episodes, frames and protocol."""
+    from trainer.baselines import SimulatorModel, StaticModel
     from trainer.config import load_train_config
     from trainer.discrepancy import HELDOUT, load_model, mark_heldout
     from trainer.evaluate import EvalConfig, EvalContext, evaluate_models
@@ -57,12 +68,12 @@ def evaluate_unchanged(run: Path, data: Path, cfg, out: Optional[Path], log=prin
 
     ctx = EvalContext(data, load_train_config(run / "train_config.yaml"), run / "scene")
     mark_heldout(ctx, cfg)
-    sim = load_model(run / "checkpoint.pt", cfg)
+    model = StaticModel() if static else SimulatorModel(load_model(run / "checkpoint.pt", cfg))
     ecfg = EvalConfig(metrics=EvalMetricsConfig(with_lpips=False), frame_stride=cfg.eval_frame_stride,
                       contact_sheets=False, progress=False)
     with tempfile.TemporaryDirectory() as tmp:
         folder = out if out is not None else Path(tmp)
-        res = evaluate_models({"before": SimulatorModel(sim)}, ctx, HELDOUT, {"before": folder}, ecfg,
+        res = evaluate_models({"before": model}, ctx, HELDOUT, {"before": folder}, ecfg,
                               log=lambda *a: None)["before"]
     res["tasks"] = {r.name: r.task for r in ctx.refs if r.split == HELDOUT}
     return res
@@ -121,6 +132,11 @@ def main(argv=None) -> int:
     print(f"run {run}; floor = unchanged model on {args.none} ({len(floor['tasks'])} held-out episodes, "
           f"{time.time() - t0:.0f} s): depth RMSE {_fmt(floor['mean']['rmse'])} m, "
           f"Chamfer {_fmt(floor['mean']['chamfer'])} m", flush=True)
+    frozen = evaluate_unchanged(run, Path(args.none), cfg, None, static=True)
+    span = headroom(frozen["mean"], floor["mean"])
+    print(f"frozen object on {args.none} (the first frame never moved): depth RMSE {_fmt(frozen['mean']['rmse'])} m "
+          f"({_fmt(span['rmse'], 2)}x the floor), Chamfer {_fmt(frozen['mean']['chamfer'])} m "
+          f"({_fmt(span['chamfer'], 2)}x)", flush=True)
     rows = {}
     for d in datasets:
         t1 = time.time()
@@ -137,6 +153,7 @@ def main(argv=None) -> int:
                   f"Chamfer {_fmt(e['chamfer_before'])} ({_fmt(e['chamfer'], 2)}x)")
     if args.json:
         Path(args.json).write_text(json.dumps({"run": str(run), "none": str(args.none), "floor": floor["mean"],
+                                               "frozen": {"metrics": frozen["mean"], "vs_floor": span},
                                                "datasets": rows}, indent=1))
     return 0
 

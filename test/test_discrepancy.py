@@ -412,6 +412,12 @@ def test_headroom_cli_scores_the_workflow_heldout_episodes(clean_run, tmp_path, 
     rep = json.loads(out.read_text())["datasets"][data.name]
     assert rep["headroom"]["rmse"] == 1.0 and rep["headroom"]["chamfer"] == 1.0
     assert not rep["headroom"]["passable"]
+    frozen = json.loads(out.read_text())["frozen"]  # the first frame never moved, on the same episodes
+    floor = json.loads(out.read_text())["floor"]
+    for m in ("rmse", "chamfer"):
+        assert math.isfinite(frozen["metrics"][m]) and frozen["metrics"][m] > 0
+        assert frozen["vs_floor"][m] == pytest.approx(frozen["metrics"][m] / floor[m])
+    assert frozen["metrics"]["chamfer"] != floor["chamfer"]  # the model moves the object, a frozen one does not
     refs = EvalContext(data, load_train_config(root / "run" / "train_config.yaml"), root / "run" / "scene").refs
     assert sorted(rep["episodes"]) == sorted(heldout_names(refs, load_discrepancy_config("fast")))
     other = tmp_path / "other_seed"
