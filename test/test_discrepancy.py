@@ -182,6 +182,28 @@ def test_discrepancy_detection_pairs_episodes_of_the_same_task():
         detect_discrepancy(meas, ref, 500, 0.05, measured_tasks=mt[:3], reference_tasks=rt)
 
 
+def test_episode_residuals_point_at_episodes_beyond_the_models_own_error():
+    """Each measured episode against the largest reference residual of its task, worst first: a
+    subset hit hard (2 of 4 lifts at 20x) is flagged, the rest not; a task the reference lacks is
+    compared with all reference episodes; no reference: nothing flagged."""
+    from trainer.discrepancy import episode_residuals
+
+    ref = [("lift", 0.008), ("lift", 0.010), ("drag", 0.004), ("drag", 0.005)]
+    meas = {"a": {"task": "lift", "residual": 0.20}, "b": {"task": "lift", "residual": 0.009},
+            "c": {"task": "lift", "residual": 0.18}, "d": {"task": "drag", "residual": 0.006},
+            "e": {"task": "drag", "residual": 0.0045}, "f": {"task": "fold", "residual": 0.009}}
+    out, chance = episode_residuals(meas, ref)
+    assert list(out) == ["a", "c", "b", "f", "d", "e"]
+    assert chance == pytest.approx(5 / 3 + 1 / 5)  # 3 lifts and 2 drags vs 2 each, the fold vs all 4
+    assert out["a"]["vs_reference_median"] == pytest.approx(0.20 / 0.009)
+    assert [k for k, v in out.items() if v["beyond_reference"]] == ["a", "c", "d"]
+    assert out["a"]["reference_max"] == 0.010 and out["a"]["vs_reference_max"] == pytest.approx(20.0)
+    assert out["d"]["reference_max"] == 0.005 and out["f"]["reference_max"] == 0.010 and not out["f"]["beyond_reference"]
+    none, chance = episode_residuals(meas, [])
+    assert not any(v["beyond_reference"] for v in none.values()) and none["a"]["reference_max"] is None
+    assert chance == 0.0 and none["a"]["vs_reference_median"] is None
+
+
 def test_config_rejects_unknown_candidates():
     with pytest.raises(ValueError, match="unknown candidate"):
         load_discrepancy_config("fast", {"candidates": ["no_such_effect"]})
@@ -253,6 +275,12 @@ def test_workflow_end_to_end_negative_control(clean_run):
     det = disk["discrepancy"]
     assert det["n_reference"] == len(held_in_training) < 3 and det["assessed"] is False and det["detected"] is None
     assert "not assessed" in (out / "report.md").read_text()
+    per = disk["episode_residuals"]  # every measured episode, worst first, against the reference's largest
+    assert sorted(per) == sorted(disk["episodes"]["fit"] + disk["episodes"]["heldout"])
+    assert [v["residual"] for v in per.values()] == sorted((v["residual"] for v in per.values()), reverse=True)
+    assert all(v["reference_max"] > 0 and isinstance(v["beyond_reference"], bool) for v in per.values())
+    assert "Episodes, worst first" in (out / "report.md").read_text()
+    assert disk["episodes_beyond_reference"]["count"] == sum(v["beyond_reference"] for v in per.values())
     assert all("reference_parameters" in f for f in disk["fits"].values())
     ex = [r["explained_fraction"] for r in disk["ranking"]]
     assert ex == sorted(ex, reverse=True)

@@ -13,6 +13,7 @@ DIR/residual_clusters.npz  per episode the [F, K, 3] cluster residuals and their
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +41,33 @@ def _detection_line(det: dict | None, named: str) -> str:
             f"vs {1000 * det['reference_median']:.1f} mm on {det['n_reference']} reference episodes, "
             f"x{det['median_ratio']:.2f})"
             + ("; no candidate of the library explains it significantly" if det["detected"] and named == "none" else ""))
+
+
+def _episode_table(per: dict, beyond: dict | None) -> list[str]:
+    """Markdown: every measured episode, worst first, against the reference episodes of its task."""
+    if not per:
+        return []
+
+    def x(v, key):
+        r = v.get(key)
+        return "n/a" if r is None else f"{r:.2f}"
+
+    head = "Episodes, worst first (unchanged model; 3D residual = mean distance observed point -> nearest splat)"
+    if beyond and any(v.get("reference_max") is not None for v in per.values()):
+        head += (f": **{beyond['count']} of {len(per)} beyond the largest residual of the reference episodes of "
+                 f"their task** (the model's own error), about {beyond['expected_by_chance']:.1f} expected by chance "
+                 f"were the data like the reference; a pointer, not a significance test")
+    lines = [head + ".", "",
+             "| episode | task | split | 3D residual (mm) | depth RMSE (m) | x reference median | x largest reference |",
+             "|---|---|---|---|---|---|---|"]
+    for name, v in per.items():
+        d = v.get("depth_rmse")
+        ds = f"{d:.4f}" if isinstance(d, (int, float)) and math.isfinite(d) else "n/a"
+        top = x(v, "vs_reference_max")
+        top = f"**{top}**" if v.get("beyond_reference") else top
+        lines.append(f"| {name} | {v.get('task')} | {v.get('split')} | {1000 * v['residual']:.1f} | {ds} | "
+                     f"{x(v, 'vs_reference_median')} | {top} |")
+    return lines + [""]
 
 
 def write_report(out: Path, report: dict, stage1: dict, samples: dict, n_clusters: int, sim) -> None:
@@ -168,6 +196,7 @@ def write_report(out: Path, report: dict, stage1: dict, samples: dict, n_cluster
         "",
         "## Where the residual lives",
         "",
+        *_episode_table(report.get("episode_residuals") or {}, report.get("episodes_beyond_reference")),
         "![residual over time](residual_time.png)",
         "",
         "![per-cluster residual](residual_clusters.png)",
