@@ -25,8 +25,8 @@ effect that leaves the object in the same height range can raise the model's dep
 the frozen object's and no further; where frozen / floor is under 2, no such effect can be halved
 on depth RMSE. (Chamfer has no such ceiling: an object blown off the table costs metres.)
 
-It needs one evaluation of the unchanged model per dataset (rope, 6 held-out episodes: ~20 s on
-one CPU core; cloth, 4: ~2.5 min), not the workflow's hour, and tells beforehand whether a test
+It needs one evaluation of the unchanged model per dataset, and one of the frozen object (rope,
+6 held-out episodes: ~15 s each on one CPU core; cloth, 3: ~2 min), not the workflow's hour, and tells beforehand whether a test
 of an effect at a given magnitude can pass with a given model.
 """
 
