@@ -136,26 +136,36 @@ def format_table(rows: list[dict], header: str) -> list[str]:
     return lines
 
 
-def load_world(world_config: str | None = None, effects_config: str | None = None):
+def load_world(world_config: str | None = None, effects_config: str | None = None, frames: int | None = None):
     """The world config (default: config/world/default.yaml) with its effect magnitudes replaced by
-    ``effects_config`` (a YAML path or a name in config/world) when given."""
+    ``effects_config`` (a YAML path or a name in config/world) when given, and the ``tiny`` preset's
+    episode length set to ``frames`` (the same motions, slower: an effect has longer to act)."""
     from soma_ros.world import load_effects_config, load_world_config
 
     cfg = load_world_config(world_config) if world_config else load_world_config()
     if effects_config:
         cfg.effects = load_effects_config(effects_config)  # resolves names in config/world
+    if frames is not None:
+        if int(frames) < 2:
+            raise ValueError(f"frames must be at least 2, got {frames}")
+        cfg.presets["tiny"].frames = [int(frames), int(frames)]
+    if effects_config or frames is not None:
         cfg.validate()
     return cfg
 
 
 def _generate(obj: str, out: Path, episodes: int, seed: int, effect: str, world_config: str | None, log,
-              effects_config: str | None = None) -> Path:
+              effects_config: str | None = None, frames: int | None = None) -> Path:
     from soma_ros.world import generate_dataset
 
     if (out / "manifest.json").is_file():
+        have = sorted({e.get("frames") for e in json.loads((out / "manifest.json").read_text())["episodes"]})
+        if frames is not None and have != [int(frames)]:
+            raise ValueError(f"{out}: existing data has episodes of {have} frames, not {frames} "
+                             f"(another --out, or delete it to regenerate)")
         log(f"data: reusing {out}")
         return out
-    cfg = load_world(world_config, effects_config)
+    cfg = load_world(world_config, effects_config, frames)
     t0 = time.time()
     generate_dataset(cfg, obj, "tiny", out, episodes=episodes, seed=seed,
                      effects=None if effect == "none" else [effect], progress=False)
@@ -193,7 +203,7 @@ def run(args: argparse.Namespace) -> int:
         from trainer.train import train
 
         clean = _generate(args.object, out / "data" / f"{args.object}_none", args.episodes, args.seed, "none",
-                          args.world_config, log, args.effects_config)
+                          args.world_config, log, args.effects_config, args.frames)
         run_dir = out / "run"
         if not (run_dir / "checkpoint.pt").is_file() or not read_checkpoint(run_dir / "checkpoint.pt")["extra"].get("complete"):
             tcfg = load_train_config(args.train_config, {"object": args.object})
@@ -203,7 +213,7 @@ def run(args: argparse.Namespace) -> int:
         # the own-error control's reference: new effect-free episodes (another world seed), which the
         # model was not trained on -- what a user records under the model's known conditions
         ref = _generate(args.object, out / "data" / f"{args.object}_reference", args.reference_episodes,
-                        args.seed + 1, "none", args.world_config, log, args.effects_config)
+                        args.seed + 1, "none", args.world_config, log, args.effects_config, args.frames)
         over["reference_data"] = str(ref)
         over["reference_episodes"] = args.reference_episodes  # all of them (the config's default picks 12)
     cfg = load_discrepancy_config(args.config, over)
@@ -211,7 +221,7 @@ def run(args: argparse.Namespace) -> int:
     floor = None
     for eff in effects:
         data = _generate(args.object, out / "data" / f"{args.object}_{eff}", args.episodes, args.seed, eff,
-                         args.world_config, log, args.effects_config)
+                         args.world_config, log, args.effects_config, args.frames)
         t0 = time.time()
         rep = run_discrepancy(run_dir / "checkpoint.pt", data, out / eff, cfg, log=log)
         hidden = hidden_effects(data)
@@ -230,12 +240,14 @@ def run(args: argparse.Namespace) -> int:
             f"excess rmse x{row['ratio_excess_rmse']} chamfer x{row['ratio_excess_chamfer']}")
     header = (f"# Discrepancy benchmark\n\nmodel: `{run_dir}`; object {args.object}; seed {args.seed}; "
               f"{args.episodes} episodes per dataset; workflow config `{args.config}`; world config "
-              f"`{args.world_config or 'default'}`; effect magnitudes `{args.effects_config or 'from the world config'}`")
+              f"`{args.world_config or 'default'}`; effect magnitudes `{args.effects_config or 'from the world config'}`; "
+              f"{args.frames or 'preset'} frames per episode")
     lines = format_table(rows, header)
     (out / "table.md").write_text("\n".join(lines) + "\n")
     (out / "bench.json").write_text(json.dumps({"rows": rows, "floor": floor, "run": str(run_dir), "object": args.object,
                                                 "seed": args.seed, "episodes": args.episodes,
                                                 "world_config": args.world_config, "effects_config": args.effects_config,
+                                                "frames": args.frames,
                                                 "config": args.config, "reference_episodes": args.reference_episodes,
                                                 "definitions": {
                                                     "ratio_<m>": "raw: gap_after / gap_before on the effect data",
@@ -262,11 +274,19 @@ def main(argv=None) -> int:
     p.add_argument("--world-config", default=None, metavar="YAML", help="world config (default: config/world/default.yaml)")
     p.add_argument("--effects-config", default=None, metavar="NAME|YAML",
                    help="effect magnitudes replacing the world config's (a name in config/world, e.g. effects_discrepancy)")
+    p.add_argument("--frames", type=int, default=None, metavar="N",
+                   help="frames per generated episode (default: the world's tiny preset, 40 at 30 fps); the same "
+                        "motions, slower, so an effect has longer to act")
     p.add_argument("--no-negative", action="store_true", help="skip the negative control (no effect)")
     p.add_argument("--reference-episodes", type=int, default=12, metavar="N",
                    help="effect-free episodes recorded with world seed + 1 as the workflow's own-error reference "
                         "(0: the workflow's default, the model's training dataset outside its train split)")
-    return run(p.parse_args(argv))
+    args = p.parse_args(argv)
+    try:
+        return run(args)
+    except (ValueError, FileNotFoundError) as e:  # bad world/effects config, data of another length, ...
+        print(f"benchmarks.discrepancy: error: {e}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

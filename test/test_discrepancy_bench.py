@@ -77,3 +77,28 @@ def test_effects_config_replaces_only_the_magnitudes():
     assert strong.table == base.table and strong.objects == base.objects and strong.physics == base.physics
     with pytest.raises(FileNotFoundError, match="no_such_effects"):
         load_world(effects_config="no_such_effects")
+
+
+def test_frames_sets_the_generated_episode_length_and_refuses_reused_data_of_another(tmp_path, capsys):
+    """--frames N: the tiny preset's episodes are N frames (the same motions, slower); data already in
+    OUT of another length is refused with a clear error, not silently reused."""
+    import json
+
+    from benchmarks.discrepancy import _generate, main
+
+    cfg = load_world(frames=80)
+    assert cfg.presets["tiny"].frames == [80, 80] and load_world().presets["tiny"].frames == [40, 40]
+    assert cfg.presets["paper"].frames == load_world().presets["paper"].frames
+    with pytest.raises(ValueError, match="at least 2"):
+        load_world(frames=1)
+    data = tmp_path / "data" / "rope_none"
+    data.mkdir(parents=True)
+    (data / "manifest.json").write_text(json.dumps({"episodes": [{"name": "rope_000", "frames": 40}]}))
+    assert _generate("rope", data, 1, 0, "none", None, lambda *a: None, None, 40) == data  # same length: reused
+    with pytest.raises(ValueError, match=r"\[40\] frames, not 80"):
+        _generate("rope", data, 1, 0, "none", None, lambda *a: None, None, 80)
+    # the CLI says what is wrong in one line (here: a --run folder without a checkpoint), no traceback
+    assert main(["--object", "rope", "--effects", "none", "--no-negative", "--frames", "80",
+                 "--out", str(tmp_path), "--run", str(tmp_path / "no_run")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("benchmarks.discrepancy: error:") and "no_run" in err
