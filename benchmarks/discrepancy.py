@@ -25,7 +25,8 @@
 
 Use ``--effects-config effects_discrepancy`` (config/world/effects_discrepancy.yaml) for effect
 magnitudes that move the object by more than a tiny model's own error; everything else in the world
-stays the default one the model was trained in.
+stays the default one the model was trained in. ``--frames N`` sets the generated episodes' length
+(the tiny preset's 40 frames by default): the same motions, slower, so an effect has longer to act.
 
 World effect -> registry names that count as a match: wind -> wind; air_drag -> linear_drag or
 quadratic_drag; table_friction -> table_friction; slip -> gripper_slip; heavy -> mass_scale;
