@@ -150,8 +150,7 @@ def load_world(world_config: str | None = None, effects_config: str | None = Non
         if int(frames) < 2:
             raise ValueError(f"frames must be at least 2, got {frames}")
         cfg.presets["tiny"].frames = [int(frames), int(frames)]
-    if effects_config or frames is not None:
-        cfg.validate()
+    cfg.validate()
     return cfg
 
 
@@ -160,10 +159,13 @@ def _generate(obj: str, out: Path, episodes: int, seed: int, effect: str, world_
     from soma_ros.world import generate_dataset
 
     if (out / "manifest.json").is_file():
-        have = sorted({e.get("frames") for e in json.loads((out / "manifest.json").read_text())["episodes"]})
-        if frames is not None and have != [int(frames)]:
-            raise ValueError(f"{out}: existing data has episodes of {have} frames, not {frames} "
-                             f"(another --out, or delete it to regenerate)")
+        if frames is not None:
+            from trainer.dataset import load_manifest
+
+            have = sorted({e.get("frames") for e in load_manifest(out)["episodes"]})
+            if have != [int(frames)]:
+                raise ValueError(f"{out}: existing data has episodes of {have} frames, not {frames} "
+                                 f"(another --out, or delete it to regenerate)")
         log(f"data: reusing {out}")
         return out
     cfg = load_world(world_config, effects_config, frames)

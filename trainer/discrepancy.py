@@ -753,8 +753,9 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
 
     # ---- is there a disagreement beyond the model's own error at all? (measured vs reference episodes)
     ref_res = [residual_per_frame(sim, o, ref_scene) for o in ref_obs]
-    detection = detect_discrepancy([float(np.mean(stage1[r.name]["points"])) for r in fit + held],
-                                   [float(r.mean()) for r in ref_res], cfg.bootstrap, cfg.alpha, cfg.seed,
+    measured_mean = {r.name: float(np.mean(stage1[r.name]["points"])) for r in fit + held}  # per episode, m
+    ref_mean = [float(r.mean()) for r in ref_res]
+    detection = detect_discrepancy(list(measured_mean.values()), ref_mean, cfg.bootstrap, cfg.alpha, cfg.seed,
                                    measured_tasks=[r.task for r in fit + held], reference_tasks=[o.task for o in ref_obs])
     if detection["assessed"]:
         log(f"  residual vs the reference episodes{' (same-task pairs)' if detection['stratified_by_task'] else ''}: "
@@ -762,9 +763,9 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
             f"discrepancy {'detected' if detection['detected'] else 'not detected'}")
 
     per_episode, by_chance = episode_residuals(
-        {r.name: {"task": r.task, "split": r.split, "residual": float(np.mean(stage1[r.name]["points"])),
+        {r.name: {"task": r.task, "split": r.split, "residual": measured_mean[r.name],
                   "depth_rmse": float(np.nanmean(stage1[r.name]["depth_rmse"]))} for r in fit + held},
-        [(o.task, float(r.mean())) for o, r in zip(ref_obs, ref_res)])
+        [(o.task, m) for o, m in zip(ref_obs, ref_mean)])
     beyond = [k for k, v in per_episode.items() if v["beyond_reference"]]
     if ref_obs:
         log(f"  {len(beyond)} of {len(per_episode)} episodes beyond the largest reference residual of their task "
