@@ -186,22 +186,59 @@ def test_episode_residuals_point_at_episodes_beyond_the_models_own_error():
     """Each measured episode against the largest reference residual of its task, worst first: a
     subset hit hard (2 of 4 lifts at 20x) is flagged, the rest not; a task the reference lacks is
     compared with all reference episodes; no reference: nothing flagged."""
-    from trainer.discrepancy import episode_residuals
+    from trainer.discrepancy import beyond_reference_tail, episode_residuals
 
     ref = [("lift", 0.008), ("lift", 0.010), ("drag", 0.004), ("drag", 0.005)]
     meas = {"a": {"task": "lift", "residual": 0.20}, "b": {"task": "lift", "residual": 0.009},
             "c": {"task": "lift", "residual": 0.18}, "d": {"task": "drag", "residual": 0.006},
             "e": {"task": "drag", "residual": 0.0045}, "f": {"task": "fold", "residual": 0.009}}
-    out, chance = episode_residuals(meas, ref)
+    out, summary = episode_residuals(meas, ref)
     assert list(out) == ["a", "c", "b", "f", "d", "e"]
+    chance = summary["expected_by_chance"]
     assert chance == pytest.approx(5 / 3 + 1 / 5)  # 3 lifts and 2 drags vs 2 each, the fold vs all 4
+    assert summary["count"] == 3  # groups: lift (3 vs 2), drag (2 vs 2), fold (1 vs all 4)
+    assert summary["p_value"] == pytest.approx(beyond_reference_tail([(3, 2), (2, 2), (1, 4)], 3))
     assert out["a"]["vs_reference_median"] == pytest.approx(0.20 / 0.009)
     assert [k for k, v in out.items() if v["beyond_reference"]] == ["a", "c", "d"]
     assert out["a"]["reference_max"] == 0.010 and out["a"]["vs_reference_max"] == pytest.approx(20.0)
     assert out["d"]["reference_max"] == 0.005 and out["f"]["reference_max"] == 0.010 and not out["f"]["beyond_reference"]
-    none, chance = episode_residuals(meas, [])
+    none, summary = episode_residuals(meas, [])
     assert not any(v["beyond_reference"] for v in none.values()) and none["a"]["reference_max"] is None
-    assert chance == 0.0 and none["a"]["vs_reference_median"] is None
+    assert summary == {"count": 0, "expected_by_chance": 0.0, "p_value": None}
+    assert none["a"]["vs_reference_median"] is None
+
+
+def test_beyond_reference_tail_is_the_exact_law_under_exchangeability():
+    """P(at least j measured episodes beyond the largest reference one) against a brute-force
+    enumeration of every pooled order (one task) and a simulation of two tasks with continuous
+    residuals; it is not the binomial with p = 1 / (m + 1), which ignores the shared maximum."""
+    import itertools
+    import math
+
+    from trainer.discrepancy import beyond_reference_tail
+
+    k, m = 3, 4
+    counts = np.zeros(k + 1)
+    for order in set(itertools.permutations("x" * k + "r" * m)):  # the pooled order, largest first
+        counts[order.index("r")] += 1
+    exact = counts[::-1].cumsum()[::-1] / counts.sum()  # P(X >= j)
+    for j in range(k + 1):
+        assert beyond_reference_tail([(k, m)], j) == pytest.approx(exact[j])
+    assert beyond_reference_tail([(k, m)], 1) == pytest.approx(k / (k + m))
+    rng = np.random.default_rng(0)
+    groups, draws = [(10, 6), (10, 6)], 40000
+    hits = np.zeros(draws, dtype=int)
+    for k, m in groups:
+        x, y = rng.random((draws, k)), rng.random((draws, m))
+        hits += (x > y.max(1, keepdims=True)).sum(1)
+    for j in (3, 5, 7):
+        assert beyond_reference_tail(groups, j) == pytest.approx((hits >= j).mean(), abs=0.006)
+    p7 = beyond_reference_tail(groups, 7)
+    binomial = sum(math.comb(20, i) * (1 / 7) ** i * (6 / 7) ** (20 - i) for i in range(7, 21))
+    assert p7 == pytest.approx(0.0757, abs=5e-4) and binomial < 0.02  # the shared maximum matters
+    assert beyond_reference_tail(groups, 0) == 1.0
+    with pytest.raises(ValueError, match="reference"):
+        beyond_reference_tail([(3, 0)], 1)
 
 
 def test_config_rejects_unknown_candidates():
@@ -281,6 +318,8 @@ def test_workflow_end_to_end_negative_control(clean_run):
     assert all(v["reference_max"] > 0 and isinstance(v["beyond_reference"], bool) for v in per.values())
     assert "Episodes, worst first" in (out / "report.md").read_text()
     assert disk["episodes_beyond_reference"]["count"] == sum(v["beyond_reference"] for v in per.values())
+    assert 0.0 < disk["episodes_beyond_reference"]["p_value"] <= 1.0
+    assert "P(at least" in (out / "report.md").read_text()
     assert all("reference_parameters" in f for f in disk["fits"].values())
     ex = [r["explained_fraction"] for r in disk["ranking"]]
     assert ex == sorted(ex, reverse=True)

@@ -101,7 +101,8 @@ from .evaluate_metrics import EvalMetricsConfig, score_frame, table_depth
 
 __all__ = ["DiscrepancyConfig", "load_discrepancy_config", "run_discrepancy", "DEFAULT_CANDIDATES",
            "EpisodeObs", "point_residual", "bootstrap_explained", "decide", "rank_candidates",
-           "fit_effect", "residual_per_frame", "episode_residuals"]
+           "fit_effect", "residual_per_frame", "episode_residuals",
+           "beyond_reference_tail"]
 
 DEFAULT_CANDIDATES = ["wind", "linear_drag", "quadratic_drag", "table_friction", "gripper_slip", "mass_scale"]
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "config" / "discrepancy"
@@ -397,33 +398,61 @@ def detect_discrepancy(measured: Sequence[float], reference: Sequence[float], n:
             "median_ratio_low": float(np.quantile(ratio_bs, alpha))}
 
 
-def episode_residuals(measured: dict[str, dict], reference: Sequence[tuple]) -> tuple[dict[str, dict], float]:
-    """Every measured episode's place against the model's own error, for the report (not a test).
+def beyond_reference_tail(groups: Sequence[tuple[int, int]], observed: int) -> float:
+    """P(at least ``observed`` measured episodes beyond the largest reference residual of their
+    group) were every group's measured and reference episodes exchangeable (no effect).
+
+    ``groups``: (k measured, m reference episodes) per group (a task). Within a group the count is
+    the number of measured episodes ranked above every reference one in the pooled order, so
+    P(X >= j) = C(k, j) / C(k + m, j): the events share the reference's largest and are not
+    independent, and a binomial with p = 1 / (m + 1) would overstate the evidence (with 6
+    reference episodes per task, 7 of 20 beyond has P 0.076, not the binomial 0.017). Groups are
+    independent; their distributions are convolved. Exact; 1.0 with no group."""
+    dist = np.array([1.0])
+    for k, m in groups:
+        if k < 0 or m < 1:
+            raise ValueError(f"beyond_reference_tail: need k >= 0 measured and m >= 1 reference episodes, got {k}, {m}")
+        n = k + m
+        # P(X = j) = P(the top j of the pooled order are measured and the next one is a reference)
+        p = [math.comb(k, j) / math.comb(n, j) * m / (n - j) for j in range(k + 1)]
+        dist = np.convolve(dist, p)
+    return float(min(1.0, dist[observed:].sum())) if observed > 0 else 1.0
+
+
+def episode_residuals(measured: dict[str, dict], reference: Sequence[tuple]) -> tuple[dict[str, dict], dict]:
+    """Every measured episode's place against the model's own error, for the report.
 
     ``measured``: {episode: {"task", "split", "residual" (mean 3D residual, m), "depth_rmse"}};
     ``reference``: (task, mean 3D residual) of each reference episode. Each episode is compared
     with the reference episodes of its task (all of them where none has that task): it gets
     ``vs_reference_median`` (residual / their median), ``reference_max`` (their largest),
     ``vs_reference_max`` and ``beyond_reference`` (residual > the largest); None / False without
-    reference episodes. Returns (episodes worst first, the number of them expected beyond the
-    largest by chance were the measured data like the reference: sum of 1 / (m + 1), m the number
-    of reference episodes compared with, as for exchangeable draws). An effect that hits only some
-    episodes hard (a rope the wind rolls away in 6 of 20) leaves the rank-based detection's bound
-    below 0.5 yet puts those episodes far out: this says which they are."""
+    reference episodes. Returns (episodes worst first, summary): ``count`` beyond the largest,
+    ``expected_by_chance`` (sum of 1 / (m + 1), m the number of reference episodes compared with)
+    and ``p_value``, the exact probability of at least ``count`` were the data like the reference
+    (:func:`beyond_reference_tail`; episodes of tasks the reference lacks form one group against
+    all reference episodes, an approximation). An effect that hits only some episodes hard (a rope
+    the wind rolls away in 6 of 20) leaves the rank-based detection's bound below 0.5 yet puts
+    those episodes far out: this says which they are. Not used by the detection or the naming."""
     by_task: dict = {}
     for task, r in reference:
         by_task.setdefault(task, []).append(float(r))
     every = [r for v in by_task.values() for r in v]
-    out, expected = {}, 0.0
+    out, expected, groups = {}, 0.0, {}
     for name, m in sorted(measured.items(), key=lambda kv: -kv[1]["residual"]):
-        pool = by_task.get(m.get("task")) or every
+        key = m.get("task") if by_task.get(m.get("task")) else None  # None: compared with every reference
+        pool = by_task[key] if key is not None else every
         top = max(pool) if pool else None
         med = float(np.median(pool)) if pool else None
-        expected += 1.0 / (len(pool) + 1) if pool else 0.0
+        if pool:
+            expected += 1.0 / (len(pool) + 1)
+            groups[key] = (groups.get(key, (0, len(pool)))[0] + 1, len(pool))
         out[name] = {**m, "reference_median": med, "vs_reference_median": (m["residual"] / med) if med else None,
                      "reference_max": top, "vs_reference_max": (m["residual"] / top) if top else None,
                      "beyond_reference": bool(top is not None and m["residual"] > top)}
-    return out, expected
+    count = sum(v["beyond_reference"] for v in out.values())
+    p_value = beyond_reference_tail(list(groups.values()), count) if groups else None
+    return out, {"count": int(count), "expected_by_chance": expected, "p_value": p_value}
 
 
 def decide(explained: dict[str, float], samples: dict[str, np.ndarray], alpha: float,
@@ -762,14 +791,15 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
             f"AUC {detection['auc']:.2f} (lower bound {detection['auc_low']:.2f}), median x{detection['median_ratio']:.2f}: "
             f"discrepancy {'detected' if detection['detected'] else 'not detected'}")
 
-    per_episode, by_chance = episode_residuals(
+    per_episode, beyond = episode_residuals(
         {r.name: {"task": r.task, "split": r.split, "residual": measured_mean[r.name],
                   "depth_rmse": float(np.nanmean(stage1[r.name]["depth_rmse"]))} for r in fit + held},
         [(o.task, m) for o, m in zip(ref_obs, ref_mean)])
-    beyond = [k for k, v in per_episode.items() if v["beyond_reference"]]
     if ref_obs:
-        log(f"  {len(beyond)} of {len(per_episode)} episodes beyond the largest reference residual of their task "
-            f"({by_chance:.1f} expected by chance)" + (f": {', '.join(beyond)}" if beyond else ""))
+        names = [k for k, v in per_episode.items() if v["beyond_reference"]]
+        log(f"  {beyond['count']} of {len(per_episode)} episodes beyond the largest reference residual of their task "
+            f"({beyond['expected_by_chance']:.1f} expected by chance, P(>= {beyond['count']}) = {beyond['p_value']:.3f})"
+            + (f": {', '.join(names)}" if names else ""))
 
     # ---- step 3: candidate fits and held-out explained fraction
     fit_res = [np.asarray(stage1[o.name]["points"]) for o in fit_obs]
@@ -812,7 +842,7 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
         "decision": decision,
         "discrepancy": detection,
         "episode_residuals": per_episode,
-        "episodes_beyond_reference": {"count": len(beyond), "expected_by_chance": by_chance},
+        "episodes_beyond_reference": beyond,
         "fits": {k: {kk: vv for kk, vv in v.items()} for k, v in fits.items()},
         "episodes": {"fit": [r.name for r in fit], "heldout": [r.name for r in held],
                      "reference": [o.name for o in ref_obs]},

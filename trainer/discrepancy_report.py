@@ -56,7 +56,10 @@ def _episode_table(per: dict, beyond: dict | None) -> list[str]:
     if beyond and any(v.get("reference_max") is not None for v in per.values()):
         head += (f": **{beyond['count']} of {len(per)} beyond the largest residual of the reference episodes of "
                  f"their task** (the model's own error), about {beyond['expected_by_chance']:.1f} expected by chance "
-                 f"were the data like the reference; a pointer, not a significance test")
+                 f"were the data like the reference" + (
+                     f", P(at least {beyond['count']}) = {beyond['p_value']:.3f} (exact under exchangeability "
+                     f"within each task); a pointer to where the disagreement is, not used by the decision"
+                     if beyond.get("p_value") is not None else ""))
     lines = [head + ".", "",
              "| episode | task | split | 3D residual (mm) | depth RMSE (m) | x reference median | x largest reference |",
              "|---|---|---|---|---|---|---|"]
