@@ -6,7 +6,7 @@ The question it answers
 -----------------------
 The discrepancy workflow (issue #8) needs a model whose change under a candidate effect
 predicts how measured episodes differ from effect-free ones. The learned network does not
-respond physically to terms it never saw (README, Discrepancy). An alternative is a physics
+respond physically to terms it never saw (docs/discrepancy.md). An alternative is a physics
 channel: simulate each episode twice with a small twin, once nominal and once with the
 effect, and add the *difference*, carried to the splats, to the learned rollout:
 

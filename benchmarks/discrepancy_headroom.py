@@ -13,7 +13,7 @@ seed and actions, so the same episodes). So
 
 and a dataset can pass the acceptance only where the headroom is about 2 or more on both metrics.
 It is an estimate, not a strict bound: a term can also remove part of the model's own error
-(README, Discrepancy, own-error control). The workflow's own conventions are used: its held-out
+(docs/discrepancy.md, own-error control). The workflow's own conventions are used: its held-out
 episodes (stratified by task), its passive-object rule and its evaluation frame stride, so the
 figures are the ``gap_before`` that ``soma discrepancy`` and ``benchmarks.discrepancy`` report.
 It also scores a *frozen object* on the effect-free twin (the first frame's splats, never moved:

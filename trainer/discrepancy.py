@@ -57,7 +57,7 @@ is computed by the evaluation engineer's scorer, :mod:`trainer.evaluate`):
    (``passive_exempt_trained``) on steps where a term the model was trained with
    acts (its robot coupling): there the model is inside its training data, where
    no such rule acted, and the rule's friction on top of the learned drag doubled
-   the rope's resimulated held-out Chamfer (9.0 -> 17.3 mm, README).
+   the rope's resimulated held-out Chamfer (9.0 -> 17.3 mm, docs/discrepancy.md).
 4. **Add** the named term to the model (its fitted parameters; optional joint
    re-fit on all measured fit episodes), save DIR/model/checkpoint.pt (a run
    folder: checkpoint, scene, train_config.yaml, usable by ``soma eval``), and

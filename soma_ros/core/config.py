@@ -199,7 +199,7 @@ class DynamicsConfig:
     force is not passive, though the term is direct. For the terms the model was trained with
     (e.g. its direct robot coupling): their steps are inside its training data, where no such
     rule acted, and the rule's friction added on top of the learned drag doubled the resimulated
-    rope's error (README, Discrepancy). Terms added later (a candidate wind) stay bounded by it.
+    rope's error (docs/discrepancy.md). Terms added later (a candidate wind) stay bounded by it.
     """
 
     accel_scale: float = 9.81
