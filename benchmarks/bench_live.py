@@ -436,7 +436,7 @@ class _Bench:
         os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
         os.environ["ROS_DOMAIN_ID"] = str(self.domain)
         self.ctx = Context()
-        rclpy.init(context=self.ctx, domain_id=self.domain)
+        rclpy.init(args=[], context=self.ctx, domain_id=self.domain)  # not the benchmark's own argv
         args = ["--ros-args", "-p", f"checkpoint:={run[0]}", "-p", f"scene:={run[1]}"]
         for p in params:
             args += ["-p", p]
@@ -777,6 +777,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--long-steps", type=int, default=10000)
     ap.add_argument("--long-splats", type=int, default=None, help="splats for the long run (default --splats)")
     ap.add_argument("--long-run", default="", help="run the long section on this trained RUN (checkpoint.pt + scene/)")
+    ap.add_argument("--long-param", action="append", default=[], metavar="NAME:=VALUE",
+                    help="an extra soma_sim_node parameter for the long run (repeatable), e.g. passive_exempt_grasped:=false")
     ap.add_argument("--flood-s", type=float, default=30.0)
     ap.add_argument("--flood-hz", type=float, default=1000.0)
     ap.add_argument("--only", nargs="+", default=["engine", "latency", "rates", "long", "flood"],
@@ -784,6 +786,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--json", default="", help="also write the results here")
     ap.add_argument("--workdir", default="", help="where the untrained runs go (default: a temporary folder)")
     args = ap.parse_args(argv)
+    bad = [q for q in args.long_param if ":=" not in q]
+    if bad:
+        ap.error(f"--long-param {bad[0]!r}: expected NAME:=VALUE")
     torch.set_num_threads(1)
 
     from soma_ros.core.scenes import write_untrained_run
@@ -881,6 +886,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             f"gripper cycling grasp-lift-lower ({len(cycle)} poses at 60 Hz)")
         params = ["device:=" + args.device, f"torch_threads:={args.torch_threads}", "rate_hz:=1000.0",
                   "render_rate_hz:=0.0", "splat_rate_hz:=0.5"] + ([] if given else ["cameras:=[cam_front]"])
+        params += args.long_param
+        if args.long_param:
+            say(f"long: node parameters {' '.join(args.long_param)}")
         b = _Bench(run, params, live.required_joints, [], splats=True)
         try:
             b.started(cycle[0], ("splats",))

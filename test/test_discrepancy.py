@@ -507,5 +507,7 @@ def test_load_model_exempts_the_trained_terms_by_default(clean_run):
     assert sim.config.dynamics.passive_friction == 0.5 and sim.config.dynamics.passive_exempt == []
     sim = load_model(ck, load_discrepancy_config("default"))
     assert sim.config.dynamics.passive_exempt == ["robot"]  # not gravity / support (reference terms)
+    assert sim.config.dynamics.passive_exempt_closed is True  # as the live node: only with the gripper closed
+    assert sim.trained_terms() == ["robot"]
     sim.add_effect({"name": "wind", "direct": True})
     assert sim.config.dynamics.passive_exempt == ["robot"]  # a candidate added later stays bounded

@@ -291,8 +291,11 @@ def test_passive_rule_is_a_live_option_and_stops_the_root_after_a_push(untrained
     ck, sc = str(untrained_run[0]), str(untrained_run[1])
     assert load_live(ck, sc).sim.config.dynamics.passive_friction is None
     assert load_live(ck, sc, passive_friction=-1.0).sim.config.dynamics.passive_friction is None
+    every_step = load_live(ck, sc, passive_friction=0.5, passive_exempt_grasped=False).sim.config.dynamics
+    assert every_step.passive_exempt == []
     live = load_live(ck, sc, passive_friction=0.5)
-    assert live.sim.config.dynamics.passive_friction == 0.5
+    dyn = live.sim.config.dynamics
+    assert dyn.passive_friction == 0.5 and dyn.passive_exempt == ["robot"] and dyn.passive_exempt_closed
     m, x_lo, x_hi = _rope_axis(live)
     g = (x_lo + 0.25 * (x_hi - x_lo), float(np.median(m[:, 1])), float(np.median(m[:, 2])))
     top = float(m[:, 2].max())

@@ -144,6 +144,28 @@ def test_an_exempt_direct_term_is_not_braked_by_the_rule():
         sim.set_passive_friction(0.5, ["nope"])
 
 
+def test_the_exemption_can_hold_only_while_the_gripper_is_closed():
+    """``passive_exempt_closed``: the exempt push acts unbraked with the gripper closed (bit for bit
+    as without the rule) and is held by the rule with it open, or with no robot at all."""
+    ends = {}
+    for mu, closed, grip in ((None, False, 0.0), (0.5, False, 1.0), (0.5, True, 0.0), (0.5, True, 1.0), (0.5, True, None)):
+        sim, _ = _sim(mu)
+        sim.add_effect({"name": "wind", "key": "push", "direct": True, "accel": [3.0, 0.0, 0.0]})
+        sim.set_passive_friction(mu, ["push"], closed)
+        assert sim.config.dynamics.passive_exempt_closed is closed
+        action = None if grip is None else RobotAction(torch.tensor([[2.0, 2.0, 0.5]]), grip)
+        with torch.no_grad():
+            s0 = sim.init_state(synthetic_rope(600, seed=0, center=(0.0, 0.0, 0.0)), SceneContext.table())
+            ends[(mu, closed, grip)] = sim.rollout(s0, [action] * 10)[-1].positions[sim.hierarchy.root_level] - \
+                s0.positions[sim.hierarchy.root_level]
+    free = ends[(None, False, 0.0)]
+    assert float(free[0, 0]) > 0.01
+    assert torch.equal(ends[(0.5, False, 1.0)], free)  # exempt whatever the gripper: unbraked
+    assert torch.equal(ends[(0.5, True, 0.0)], free)  # closed: exempt
+    assert float(ends[(0.5, True, 1.0)][0, :2].abs().max()) == 0.0  # open: the rule holds the root
+    assert float(ends[(0.5, True, None)][0, :2].abs().max()) == 0.0  # no robot: the rule holds the root
+
+
 def test_config_validation_and_checkpoint_default():
     cfg = load_model_config("cpu")
     assert cfg.dynamics.passive_friction is None  # training and evaluation configs: off
@@ -157,6 +179,10 @@ def test_config_validation_and_checkpoint_default():
     cfg.dynamics.passive_contact_m = 0.01
     cfg.dynamics.passive_exempt = ["robot", ""]
     with pytest.raises(ConfigError, match="passive_exempt"):
+        cfg.dynamics.validate()
+    cfg.dynamics.passive_exempt = ["robot"]
+    cfg.dynamics.passive_exempt_closed = "yes"
+    with pytest.raises(ConfigError, match="passive_exempt_closed"):
         cfg.dynamics.validate()
 
 

@@ -125,6 +125,8 @@ class DiscrepancyConfig:
     # live node runs it (friction coefficient); None: the checkpoint's setting; < 0: off
     passive_exempt_trained: bool = True  # the terms the model was trained with (its robot coupling) make a
     # step non-passive (DynamicsConfig.passive_exempt); candidates added by the workflow never do
+    passive_exempt_closed: bool = True  # ... only while the gripper is closed (DynamicsConfig.passive_exempt_closed),
+    # as the live node does (an open gripper's coupling drags, it does not carry)
     max_fit_episodes: int = 0  # 0 = all
     max_heldout_episodes: int = 0  # 0 = all
     bootstrap: int = 2000
@@ -268,8 +270,8 @@ def reference_dataset(cfg: DiscrepancyConfig, extra: dict) -> tuple[Optional[Pat
 def load_model(checkpoint: Path, cfg: "DiscrepancyConfig") -> Simulator:
     """The unchanged model of a checkpoint with the workflow's passive-object rule, in eval mode."""
     sim = load_checkpoint(checkpoint)
-    trained = [k for k, e in sim.effects.terms.items() if not e.in_reference]
-    return sim.set_passive_friction(cfg.passive_friction, trained if cfg.passive_exempt_trained else None).eval()
+    return sim.set_passive_friction(cfg.passive_friction, sim.trained_terms() if cfg.passive_exempt_trained else None,
+                                    cfg.passive_exempt_closed).eval()
 
 
 def point_residual(points: torch.Tensor, means: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

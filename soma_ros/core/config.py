@@ -200,6 +200,10 @@ class DynamicsConfig:
     (e.g. its direct robot coupling): their steps are inside its training data, where no such
     rule acted, and the rule's friction added on top of the learned drag doubled the resimulated
     rope's error (docs/discrepancy.md). Terms added later (a candidate wind) stay bounded by it.
+    ``passive_exempt_closed``: the exemption holds only while the gripper is closed (gripper
+    state < 0.5), where the coupling carries the object; with the gripper open the step stays
+    passive (an open gripper's coupling drags, it does not carry, and exempting it let the
+    network lift a released rope under the hovering gripper: README, "The live node").
     """
 
     accel_scale: float = 9.81
@@ -210,6 +214,7 @@ class DynamicsConfig:
     passive_friction: Optional[float] = None
     passive_contact_m: float = 0.01
     passive_exempt: list[str] = field(default_factory=list)
+    passive_exempt_closed: bool = False
 
     def validate(self, where: str = "dynamics") -> None:
         for name in ("accel_scale", "velocity_scale", "max_speed", "max_log_stretch", "residual_factor",
@@ -222,6 +227,8 @@ class DynamicsConfig:
             raise ConfigError(f"{where}.passive_friction: must be None (off) or finite and >= 0, got {pf}")
         if not all(isinstance(k, str) and k for k in self.passive_exempt):
             raise ConfigError(f"{where}.passive_exempt: must be a list of effect keys, got {self.passive_exempt!r}")
+        if not isinstance(self.passive_exempt_closed, bool):
+            raise ConfigError(f"{where}.passive_exempt_closed: must be true or false, got {self.passive_exempt_closed!r}")
 
 
 @dataclass

@@ -627,19 +627,30 @@ class Simulator(nn.Module):
             )
         if action is not None and not isinstance(action, RobotAction):
             raise TypeError(f"step: action must be a RobotAction or None, got {type(action).__name__}")
-        passive_rule = self.config.dynamics.passive_friction is not None
+        dyn = self.config.dynamics
+        passive_rule = dyn.passive_friction is not None
+        exempt = dyn.passive_exempt
+        if exempt and dyn.passive_exempt_closed and (action is None or float(action.gripper) >= 0.5):
+            exempt = []  # an open gripper's coupling drags, it does not carry: the step stays passive
         f, f_direct, acting = self.effects.split_active(self.effect_context(state, action), check_active=passive_rule,
-                                                        exempt=self.config.dynamics.passive_exempt)
+                                                        exempt=exempt)
         nxt, _ = self._advance(state, action, f, state.episode.reference, f_direct, passive=acting if passive_rule else 2)
         return nxt
 
     forward = step
 
-    def set_passive_friction(self, mu: Optional[float], exempt: Optional[Sequence[str]] = None) -> "Simulator":
+    def trained_terms(self) -> list[str]:
+        """The effect keys other than the reference ones (gravity, the support): the terms the
+        model carries beyond its equilibrium, e.g. its robot coupling (``passive_exempt``)."""
+        return [k for k, e in self.effects.terms.items() if not e.in_reference]
+
+    def set_passive_friction(self, mu: Optional[float], exempt: Optional[Sequence[str]] = None,
+                             exempt_closed: Optional[bool] = None) -> "Simulator":
         """Switch the passive-object rule (``DynamicsConfig.passive_friction``): None leaves the
         model's setting, a negative value turns it off, any other is its friction coefficient.
         ``exempt``: effect keys whose steps are not passive (``DynamicsConfig.passive_exempt``;
-        None leaves the setting)."""
+        None leaves the setting); ``exempt_closed``: only while the gripper is closed
+        (``DynamicsConfig.passive_exempt_closed``; None leaves it)."""
         if mu is not None:
             self.config.dynamics.passive_friction = None if mu < 0 else float(mu)
         if exempt is not None:
@@ -647,6 +658,8 @@ class Simulator(nn.Module):
             if unknown:
                 raise ValueError(f"set_passive_friction: no effect {unknown[0]!r} (has {', '.join(self.effects.terms)})")
             self.config.dynamics.passive_exempt = list(exempt)
+        if exempt_closed is not None:
+            self.config.dynamics.passive_exempt_closed = bool(exempt_closed)
         self.config.dynamics.validate()
         return self
 

@@ -141,6 +141,9 @@ class SomaSimNode(Node):
                                              "effects acts, the learned dynamics may not speed the object up "
                                              "horizontally or upwards, and on the table Coulomb friction with this "
                                              "coefficient brakes it (negative = off)", -1.0, 10.0)
+        p("passive_exempt_grasped", True, ParameterDescriptor(
+            description="passive-object rule: steps where the model's own terms (its robot coupling) act with the "
+                        "gripper closed are not passive, as in its training episodes (false: the rule on every step)"))
         self.max_joint_age = _float_param(self, "max_joint_state_age_s", 1.0,
                                           "hold the robot still when the newest joint state is older than this, s; "
                                           "joint states stamped further than this ahead of the node clock are rejected",
@@ -161,7 +164,8 @@ class SomaSimNode(Node):
         cams = [c for c in gp("cameras") if c]
         self.live = load_live(ckpt, scene, camera_names=cams or None, render_scale=self.render_scale, device=gp("device"),
                               max_travel_m=self.max_travel, settle_s=self.settle_time, settle_speed=self.settle_speed,
-                              passive_friction=self.passive_friction)
+                              passive_friction=self.passive_friction,
+                              passive_exempt_grasped=bool(gp("passive_exempt_grasped")))
         if gp("robot_config"):
             from ..core.robot import RobotModel
 
@@ -171,6 +175,13 @@ class SomaSimNode(Node):
         self.get_logger().info(
             f"loaded {ckpt} and scene {scene}: {len(self.live.template)} splats, cameras "
             f"{', '.join(c.name for c in self.live.cameras)}, joints {', '.join(self.live.required_joints)}")
+        dyn = self.live.sim.config.dynamics
+        self.get_logger().info(
+            "passive-object rule: off" if dyn.passive_friction is None else
+            f"passive-object rule: friction {dyn.passive_friction}"
+            + (f", not on steps where {', '.join(dyn.passive_exempt)} acts"
+               + (" with the gripper closed" if dyn.passive_exempt_closed else "") if dyn.passive_exempt else
+               ", on every step"))
 
         self.pub_splats = self.create_publisher(PointCloud2, f"{prefix}/splats", SENSOR_OUT_QOS)
         self.pub_status = self.create_publisher(SimStatus, f"{prefix}/status", STATUS_QOS)
