@@ -71,7 +71,8 @@ def main(argv=None) -> int:
               f"gripper z {float(act.control_points[:, 2].double().mean()):.3f} m   opening {float(act.gripper):.2f}"
               f"   settles {live.settles}")
 
-    print(f"{args.run}: {len(x0)} splats, {len(cycle)} poses each way, 2 steps per pose")
+    print(f"{args.run}: {len(x0)} splats, {len(cycle)} poses each way, 2 steps per pose, passive-object rule: "
+          f"{live.sim.config.dynamics.passive_rule_text()}")
     for name, path in (("grasp+lift", cycle), ("lower+open", cycle[::-1])):
         for i, v in enumerate(path):
             live.step(v)
@@ -91,10 +92,8 @@ def repeated(run: str, n: int, passive_friction: float = 0.5, exempt_trained: st
     live, x0, fwd = _setup(run, 2.0, passive_friction, exempt_trained)
     cycle = fwd + fwd[::-1]
     c0 = x0.mean(0)
-    print(f"{run}: {len(x0)} splats, {n} cycles of {len(cycle)} poses, 2 steps per pose, passive-object rule "
-          f"{'off' if passive_friction < 0 else f'on (friction {passive_friction})'}"
-          + (f", not on steps where {', '.join(live.sim.config.dynamics.passive_exempt)} acts"
-             + (" with the gripper closed" if exempt_trained == "closed" else "") if exempt_trained != "none" else ""))
+    print(f"{run}: {len(x0)} splats, {n} cycles of {len(cycle)} poses, 2 steps per pose, passive-object rule: "
+          f"{live.sim.config.dynamics.passive_rule_text()}")
     for c in range(n):
         far = 0.0
         for v in cycle:

@@ -153,6 +153,8 @@ def test_the_exemption_can_hold_only_while_the_gripper_is_closed():
         sim.add_effect({"name": "wind", "key": "push", "direct": True, "accel": [3.0, 0.0, 0.0]})
         sim.set_passive_friction(mu, ["push"], closed)
         assert sim.config.dynamics.passive_exempt_closed is closed
+        assert sim.config.dynamics.passive_rule_text() == (
+            "off" if mu is None else f"friction 0.5, not on steps where push acts{' with the gripper closed' * closed}")
         action = None if grip is None else RobotAction(torch.tensor([[2.0, 2.0, 0.5]]), grip)
         with torch.no_grad():
             s0 = sim.init_state(synthetic_rope(600, seed=0, center=(0.0, 0.0, 0.0)), SceneContext.table())

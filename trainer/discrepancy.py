@@ -55,7 +55,8 @@ is computed by the evaluation engineer's scorer, :mod:`trainer.evaluate`):
    as the live node does): the learned dynamics cannot push a resting object,
    and a candidate's push on it must beat the table's friction. Except
    (``passive_exempt_trained``) on steps where a term the model was trained with
-   acts (its robot coupling): there the model is inside its training data, where
+   acts (its robot coupling) with the gripper closed (``passive_exempt_closed``, as
+   the live node): there the model is inside its training data, where
    no such rule acted, and the rule's friction on top of the learned drag doubled
    the rope's resimulated held-out Chamfer (9.0 -> 17.3 mm, docs/discrepancy.md).
 4. **Add** the named term to the model (its fitted parameters; optional joint

@@ -230,6 +230,15 @@ class DynamicsConfig:
         if not isinstance(self.passive_exempt_closed, bool):
             raise ConfigError(f"{where}.passive_exempt_closed: must be true or false, got {self.passive_exempt_closed!r}")
 
+    def passive_rule_text(self) -> str:
+        """The passive-object rule in words, for logs."""
+        if self.passive_friction is None:
+            return "off"
+        if not self.passive_exempt:
+            return f"friction {self.passive_friction}, on every step"
+        grip = " with the gripper closed" if self.passive_exempt_closed else ""
+        return f"friction {self.passive_friction}, not on steps where {', '.join(self.passive_exempt)} acts{grip}"
+
 
 @dataclass
 class NormalizerConfig:

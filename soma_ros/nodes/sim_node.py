@@ -175,13 +175,7 @@ class SomaSimNode(Node):
         self.get_logger().info(
             f"loaded {ckpt} and scene {scene}: {len(self.live.template)} splats, cameras "
             f"{', '.join(c.name for c in self.live.cameras)}, joints {', '.join(self.live.required_joints)}")
-        dyn = self.live.sim.config.dynamics
-        self.get_logger().info(
-            "passive-object rule: off" if dyn.passive_friction is None else
-            f"passive-object rule: friction {dyn.passive_friction}"
-            + (f", not on steps where {', '.join(dyn.passive_exempt)} acts"
-               + (" with the gripper closed" if dyn.passive_exempt_closed else "") if dyn.passive_exempt else
-               ", on every step"))
+        self.get_logger().info(f"passive-object rule: {self.live.sim.config.dynamics.passive_rule_text()}")
 
         self.pub_splats = self.create_publisher(PointCloud2, f"{prefix}/splats", SENSOR_OUT_QOS)
         self.pub_status = self.create_publisher(SimStatus, f"{prefix}/status", STATUS_QOS)
