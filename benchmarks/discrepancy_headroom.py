@@ -56,10 +56,10 @@ def headroom(before: dict, floor: dict, metrics: Sequence[str] = METRICS) -> dic
     return out
 
 
-def evaluate_unchanged(run: Path, data: Path, cfg, out: Optional[Path], log=print, static: bool = False) -> dict:
+def evaluate_unchanged(run: Path, data: Path, cfg, out: Optional[Path], log=print, frozen: bool = False) -> dict:
     """The unchanged model's metrics on the workflow's held-out episodes of ``data`` (metrics.json form);
-    with ``static`` those of a frozen object instead (:class:`trainer.baselines.StaticModel`: the
-    first frame's splats, never moved), on the same episodes, frames and protocol."""
+    with ``frozen`` also, under key "frozen", those of a frozen object (:class:`trainer.baselines.StaticModel`:
+    the first frame's splats, never moved), scored in the same pass on the same episodes, frames and protocol."""
     from trainer.baselines import SimulatorModel, StaticModel
     from trainer.config import load_train_config
     from trainer.discrepancy import HELDOUT, load_model, mark_heldout
@@ -68,13 +68,17 @@ def evaluate_unchanged(run: Path, data: Path, cfg, out: Optional[Path], log=prin
 
     ctx = EvalContext(data, load_train_config(run / "train_config.yaml"), run / "scene")
     mark_heldout(ctx, cfg)
-    model = StaticModel() if static else SimulatorModel(load_model(run / "checkpoint.pt", cfg))
+    models = {"before": SimulatorModel(load_model(run / "checkpoint.pt", cfg))}
+    if frozen:
+        models["frozen"] = StaticModel()
     ecfg = EvalConfig(metrics=EvalMetricsConfig(with_lpips=False), frame_stride=cfg.eval_frame_stride,
                       contact_sheets=False, progress=False)
     with tempfile.TemporaryDirectory() as tmp:
-        folder = out if out is not None else Path(tmp)
-        res = evaluate_models({"before": model}, ctx, HELDOUT, {"before": folder}, ecfg,
-                              log=lambda *a: None)["before"]
+        folders = {"before": out if out is not None else Path(tmp) / "before", "frozen": Path(tmp) / "frozen"}
+        every = evaluate_models(models, ctx, HELDOUT, {k: folders[k] for k in models}, ecfg, log=lambda *a: None)
+    res = every["before"]
+    if frozen:
+        res["frozen"] = every["frozen"]
     res["tasks"] = {r.name: r.task for r in ctx.refs if r.split == HELDOUT}
     return res
 
@@ -128,11 +132,11 @@ def main(argv=None) -> int:
     cfg = load_discrepancy_config(args.config)
     sub = (lambda d: Path(args.out) / d.name) if args.out else (lambda d: None)
     t0 = time.time()
-    floor = evaluate_unchanged(run, Path(args.none), cfg, sub(Path(args.none)))
+    floor = evaluate_unchanged(run, Path(args.none), cfg, sub(Path(args.none)), frozen=True)
+    frozen = floor.pop("frozen")
     print(f"run {run}; floor = unchanged model on {args.none} ({len(floor['tasks'])} held-out episodes, "
           f"{time.time() - t0:.0f} s): depth RMSE {_fmt(floor['mean']['rmse'])} m, "
           f"Chamfer {_fmt(floor['mean']['chamfer'])} m", flush=True)
-    frozen = evaluate_unchanged(run, Path(args.none), cfg, None, static=True)
     span = headroom(frozen["mean"], floor["mean"])
     print(f"frozen object on {args.none} (the first frame never moved): depth RMSE {_fmt(frozen['mean']['rmse'])} m "
           f"({_fmt(span['rmse'], 2)}x the floor), Chamfer {_fmt(frozen['mean']['chamfer'])} m "

@@ -441,21 +441,22 @@ def episode_residuals(measured: dict[str, dict], reference: Sequence[tuple]) -> 
     for task, r in reference:
         by_task.setdefault(task, []).append(float(r))
     every = [r for v in by_task.values() for r in v]
-    out, expected, groups = {}, 0.0, {}
+    out, measured_in = {}, {}  # measured episodes per reference pool (a task, or None: every reference)
     for name, m in sorted(measured.items(), key=lambda kv: -kv[1]["residual"]):
         key = m.get("task") if by_task.get(m.get("task")) else None  # None: compared with every reference
         pool = by_task[key] if key is not None else every
         top = max(pool) if pool else None
         med = float(np.median(pool)) if pool else None
         if pool:
-            expected += 1.0 / (len(pool) + 1)
-            groups[key] = (groups.get(key, (0, len(pool)))[0] + 1, len(pool))
+            measured_in[key] = measured_in.get(key, 0) + 1
         out[name] = {**m, "reference_median": med, "vs_reference_median": (m["residual"] / med) if med else None,
                      "reference_max": top, "vs_reference_max": (m["residual"] / top) if top else None,
                      "beyond_reference": bool(top is not None and m["residual"] > top)}
+    groups = [(k, len(by_task[key] if key is not None else every)) for key, k in measured_in.items()]  # (k, m)
     count = sum(v["beyond_reference"] for v in out.values())
-    p_value = beyond_reference_tail(list(groups.values()), count) if groups else None
-    return out, {"count": int(count), "expected_by_chance": expected, "p_value": p_value}
+    p_value = beyond_reference_tail(groups, count) if groups else None
+    return out, {"count": int(count), "expected_by_chance": float(sum(k / (m + 1) for k, m in groups)),
+                 "p_value": p_value}
 
 
 def decide(explained: dict[str, float], samples: dict[str, np.ndarray], alpha: float,

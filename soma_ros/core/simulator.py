@@ -215,6 +215,11 @@ class RobotAction:
         self.control_points = cp
         self.gripper = g if isinstance(g, torch.Tensor) else torch.tensor(gv, dtype=cp.dtype, device=cp.device)
 
+    @property
+    def is_open(self) -> bool:
+        """Gripper state >= 0.5: an open gripper's coupling drags, it does not carry (the passive rule)."""
+        return float(self.gripper) >= 0.5
+
 
 # ----------------------------------------------------------------------------- state
 @dataclass
@@ -630,7 +635,7 @@ class Simulator(nn.Module):
         dyn = self.config.dynamics
         passive_rule = dyn.passive_friction is not None
         exempt = dyn.passive_exempt
-        if exempt and dyn.passive_exempt_closed and (action is None or float(action.gripper) >= 0.5):
+        if exempt and dyn.passive_exempt_closed and (action is None or action.is_open):
             exempt = []  # an open gripper's coupling drags, it does not carry: the step stays passive
         f, f_direct, acting = self.effects.split_active(self.effect_context(state, action), check_active=passive_rule,
                                                         exempt=exempt)
@@ -749,7 +754,7 @@ class Simulator(nn.Module):
         dyn_cfg = cfg.dynamics
         # the passive rule's "nothing holds it up": untouched, or only direct forces with the gripper
         # open (an open gripper's coupling drags, it does not carry)
-        free = passive == 0 or (passive == 1 and action is not None and float(action.gripper) >= 0.5)
+        free = passive == 0 or (passive == 1 and action is not None and action.is_open)
         L = h.root_level
         nl = L + 1
         dt = ep.scene.dt
