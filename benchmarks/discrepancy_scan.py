@@ -67,7 +67,7 @@ def main(argv=None) -> int:
         sim.effects.terms[args.scale_term].register_forward_hook(lambda mod, inp, out: out * factor)
         name = f"{args.scale_term}_scale"
     else:
-        sim.add_effect({"name": args.effect, "direct": True})
+        sim.add_effect({"name": args.effect, "direct": True, "fitted_after_training": True})
         params = dict(sim.effects[args.effect].named_parameters())
         if args.param not in params:
             print(f"discrepancy_scan: error: {args.effect} has no parameter {args.param!r} (has {', '.join(params)})",

@@ -183,7 +183,9 @@ class LiveSimulator:
         ``passive_exempt_closed``). The rule's friction on top of the learned drag otherwise
         doubles the rope's error while it is manipulated (held-out Chamfer 17.8 -> 11.8 mm for a
         90-iteration model, README "The live node"); with the gripper open the rule still holds,
-        or the network lifts a released rope under the hovering gripper."""
+        or the network lifts a released rope under the hovering gripper. A term fitted after
+        training (the discrepancy workflow's named effect, ``EffectSpec.fitted_after_training``) is
+        not one of the model's own terms: it was fitted under the rule and stays bounded by it."""
         self.sim = sim.set_passive_friction(passive_friction, sim.trained_terms() if passive_exempt_grasped else [],
                                             True).eval()
         self.max_travel_m = float(max_travel_m)

@@ -270,6 +270,8 @@ def test_candidates_are_fitted_as_direct_effects_and_recover_a_hidden_wind():
     cfg = load_discrepancy_config("fast", {"fit_iters": 40, "fit_lr": 0.1})
     model, losses, values = fit_effect(sim, "wind", [ob], scene, cfg, cfg.fit_iters, log=lambda *a: None)
     assert model.effects.direct_keys == ["wind"] and "wind" not in sim.effects
+    # fitted after training: never one of the model's trained terms, so no passive-rule exemption
+    assert model.trained_terms() == sim.trained_terms() == ["robot"]
     assert abs(values["accel"][1] - 1.0) < 0.2 and abs(values["accel"][0]) < 0.2, values
     assert float(residual_per_frame(model, ob, scene).mean()) < 0.3 * float(residual_per_frame(sim, ob, scene).mean())
     feat_cfg = load_discrepancy_config("fast", {"direct": False, "fit_iters": 1})
@@ -511,3 +513,13 @@ def test_load_model_exempts_the_trained_terms_by_default(clean_run):
     assert sim.trained_terms() == ["robot"]
     sim.add_effect({"name": "wind", "direct": True})
     assert sim.config.dynamics.passive_exempt == ["robot"]  # a candidate added later stays bounded
+    # a model the workflow writes (its named term fitted after training) keeps that across a
+    # checkpoint, so the live node (LiveSimulator: trained_terms) does not exempt the named term
+    from soma_ros.core.checkpoint import load_checkpoint, save_checkpoint
+
+    sim.add_effect({"name": "gripper_slip", "direct": True, "fitted_after_training": True})
+    assert sim.trained_terms() == ["robot", "wind"]
+    save_checkpoint(root / "posthoc.pt", sim)
+    back = load_checkpoint(root / "posthoc.pt")
+    assert back.trained_terms() == ["robot", "wind"] and "gripper_slip" in back.effects
+    assert [s.to_yaml_dict().get("fitted_after_training") for s in back.effects.specs] == [None, None, None, None, True]

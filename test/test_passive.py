@@ -7,7 +7,7 @@ import dataclasses
 import pytest
 import torch
 
-from soma_ros.core.config import ConfigError, load_model_config
+from soma_ros.core.config import ConfigError, EffectSpec, load_model_config
 from soma_ros.core.effects import EffectContext, build_effects
 from soma_ros.core.scenes import synthetic_rope
 from soma_ros.core.simulator import RobotAction, SceneContext, Simulator
@@ -182,6 +182,8 @@ def test_config_validation_and_checkpoint_default():
     cfg.dynamics.passive_exempt = ["robot", ""]
     with pytest.raises(ConfigError, match="passive_exempt"):
         cfg.dynamics.validate()
+    with pytest.raises(ConfigError, match="fitted_after_training"):
+        EffectSpec.parse({"name": "wind", "fitted_after_training": "yes"})
     cfg.dynamics.passive_exempt = ["robot"]
     cfg.dynamics.passive_exempt_closed = "yes"
     with pytest.raises(ConfigError, match="passive_exempt_closed"):

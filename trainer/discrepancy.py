@@ -495,7 +495,7 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
     Returns (model, per-step losses, fitted parameter values)."""
     model = copy.deepcopy(sim)
     if key is None:
-        model.add_effect({"name": name, "direct": bool(cfg.direct)})
+        model.add_effect({"name": name, "direct": bool(cfg.direct), "fitted_after_training": True})
         key = name
     for p in model.parameters():
         p.requires_grad_(False)

@@ -275,6 +275,11 @@ class EffectSpec:
     responds only to the motion it causes (e.g. how the rest of a rope follows
     the part a gripper drags), not to the force itself.
 
+    ``fitted_after_training`` (default False): the term was added to a trained model and only its
+    own parameters fitted, the network frozen (the discrepancy workflow's named effect). It is
+    not one of the model's trained terms (:meth:`Simulator.trained_terms`), so the passive-object
+    rule's exemption never covers it: it was fitted under the rule. Written only when True.
+
     In YAML an effect is a mapping whose other keys are the params::
 
         - name: support
@@ -289,6 +294,7 @@ class EffectSpec:
     params: dict = field(default_factory=dict)
     direct: bool = False
     feature: bool = True
+    fitted_after_training: bool = False
 
     @property
     def instance_key(self) -> str:
@@ -310,6 +316,7 @@ class EffectSpec:
         trainable = d.pop("trainable", True)
         direct = d.pop("direct", False)
         feature = d.pop("feature", True)
+        post_hoc = d.pop("fitted_after_training", False)
         params = dict(d.pop("params", {}) or {})
         params.update(d)
         if not isinstance(name, str) or (key is not None and not isinstance(key, str)):
@@ -320,9 +327,12 @@ class EffectSpec:
             raise ConfigError(f"{where}.direct: expected bool, got {direct!r}")
         if not isinstance(feature, bool):
             raise ConfigError(f"{where}.feature: expected bool, got {feature!r}")
+        if not isinstance(post_hoc, bool):
+            raise ConfigError(f"{where}.fitted_after_training: expected bool, got {post_hoc!r}")
         if not feature and not direct:
             raise ConfigError(f"{where}: effect {name!r} with feature: false must be direct: true (else it acts on nothing)")
-        return EffectSpec(name=name, key=key, trainable=trainable, params=params, direct=direct, feature=feature)
+        return EffectSpec(name=name, key=key, trainable=trainable, params=params, direct=direct, feature=feature,
+                          fitted_after_training=post_hoc)
 
     def to_yaml_dict(self) -> dict:
         d: dict[str, Any] = {"name": self.name}
@@ -334,6 +344,8 @@ class EffectSpec:
             d["direct"] = True
         if not self.feature:
             d["feature"] = False
+        if self.fitted_after_training:
+            d["fitted_after_training"] = True
         d.update(self.params)
         return d
 
