@@ -362,3 +362,36 @@ def test_configs_and_cli_overrides():
     p = subprocess.run([sys.executable, "-m", "soma_ros.cli", "train", "--help"], capture_output=True, text=True,
                        env=_env(), timeout=120)
     assert p.returncode == 0 and "--data" in p.stdout and "torchrun" in p.stdout
+
+
+def test_keep_best_points_keeps_the_lowest_validation_point_distance(lift_dataset, tmp_path):
+    """``run.keep: best_points``: checkpoint.pt holds the weights of the validation with the lowest
+    point distance (observed depth points to the nearest splat), which need not be the lowest loss,
+    and a resume that changes the criterion starts the choice afresh instead of comparing a loss
+    with a distance."""
+    from soma_ros.core.checkpoint import read_checkpoint
+    from trainer.config import ConfigError, load_train_config
+    from trainer.train import train
+
+    with pytest.raises(ConfigError, match="run.keep: one of best, best_points, last"):
+        load_train_config("tiny", {"run": {"keep": "lowest"}})
+    over = {"scene": {"photometric_iters": 3, "num_splats": 400},
+            "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 3, "stride": 2, "length_start": 2},
+                         "stage2": {"epochs": 1, "window": 3}},
+            "optim": {"lr": 3e-2},  # big steps: validations that differ
+            "run": {"val_episodes": 1, "val_frame_stride": 6, "keep": "best_points"}}
+    run = tmp_path / "run"
+    s = train(load_train_config("tiny", over), lift_dataset, run, log=lambda *a, **k: None)
+    hist = s["val_history"]
+    assert len(hist) == 5 and len({h["points"] for h in hist}) > 1, hist
+    best = min(hist, key=lambda h: h["points"])
+    kept = read_checkpoint(run / "checkpoint.pt")["extra"]
+    assert s["kept"] == kept["kept"] == "best_points"
+    assert kept["iteration"] == s["best_iteration"] == best["iteration"]
+    assert s["kept_score"] == pytest.approx(best["points"]) and kept["val_loss"] == pytest.approx(best["val_loss"])
+    # the same run resumed with keep: best -> chosen among the validations after the resume only
+    over2 = dict(over, schedule=dict(over["schedule"], stage2={"epochs": 2, "window": 3}), run=dict(over["run"], keep="best"))
+    logs: list = []
+    s2 = train(load_train_config("tiny", over2), lift_dataset, run, log=lambda *a, **k: logs.append(a[0]))
+    assert any("run.keep changed to best" in m for m in logs), logs
+    assert s2["best_iteration"] == s2["total_iterations"] == 5 and s2["kept"] == "best"

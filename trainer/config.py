@@ -293,6 +293,10 @@ class OptimConfig:
             raise ConfigError(f"{where}: weight_decay >= 0, grad_clip > 0, lr_final_factor in (0, 1] required")
 
 
+#: run.keep: the kept weights' criterion (validation), or the latest weights
+KEEP = ("best", "best_points", "last")
+
+
 @dataclass
 class RunConfig:
     """Cadence: checkpoint every ``checkpoint_every`` iterations (and at each epoch end),
@@ -300,7 +304,10 @@ class RunConfig:
     rendering every ``val_frame_stride``-th frame of a full-rate open-loop rollout.
 
     ``keep``: which weights the run's ``checkpoint.pt`` holds: ``best`` = those with the
-    lowest validation loss so far (the untrained model's included), ``last`` = the latest.
+    lowest validation loss so far (the untrained model's included), ``best_points`` = those
+    with the lowest validation point distance (observed object points, back-projected from the
+    recorded depth, to the nearest splat: the geometry, whatever the loss weights; the image
+    loss alone can prefer an object that no longer follows the gripper), ``last`` = the latest.
     The latest weights are always in ``checkpoint_last.pt`` and ``train_state.pt`` (resume).
     Selecting on validation is model selection: the validation episodes must not be the
     held-out test episodes (see ``data.val_split``)."""
@@ -315,8 +322,8 @@ class RunConfig:
     def validate(self, where: str = "run") -> None:
         if self.checkpoint_every < 1 or self.val_every_epochs < 1 or self.val_episodes < 1 or self.val_frame_stride < 1:
             raise ConfigError(f"{where}: checkpoint_every, val_every_epochs, val_episodes, val_frame_stride must be >= 1")
-        if self.keep not in ("best", "last"):
-            raise ConfigError(f"{where}.keep: one of best, last; got {self.keep!r}")
+        if self.keep not in KEEP:
+            raise ConfigError(f"{where}.keep: one of {', '.join(KEEP)}; got {self.keep!r}")
 
 
 @dataclass

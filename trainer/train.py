@@ -5,7 +5,7 @@
 
 RUN gets ``checkpoint.pt`` (the simulator, :func:`~soma_ros.core.checkpoint.save_checkpoint`;
 with ``run.keep: best`` the weights with the lowest validation loss so far, the untrained ones
-included, else the latest), ``checkpoint_last.pt`` (the latest weights), ``scene/`` (the scene bundle the nodes load, plus ``hierarchy.pt``), ``train_state.pt``
+included, with ``best_points`` those with the lowest validation point distance, else the latest), ``checkpoint_last.pt`` (the latest weights), ``scene/`` (the scene bundle the nodes load, plus ``hierarchy.pt``), ``train_state.pt``
 (optimiser and schedule, for resuming), ``log.csv``, ``loss.png``, ``train_config.yaml``.
 
 One iteration (per rank): pick a training episode, roll the simulator out from
@@ -778,12 +778,18 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
     stop = total if max_iterations is None else min(total, int(max_iterations))
     runlog = RunLog(out_dir / "log.csv", start_it if resume is not None else None) if dist.is_main else None
     best_val = float(resume["best_val"]) if resume is not None and resume.get("best_val") is not None else None
+    # the kept weights' criterion: the validation loss (run.keep: best) or point distance (best_points)
+    crit = "points" if cfg.run.keep == "best_points" else "val_loss"
+    best_score = resume.get("best_score", best_val) if resume is not None else None
     first_val = resume.get("first_val") if resume is not None else None
     last_val = resume.get("last_val") if resume is not None else None
     val_history: list = list(resume.get("val_history", [])) if resume is not None else []
     # the kept weights (run.keep: best): a CPU copy of the state dict with the lowest validation loss
     best_iteration = resume.get("best_iteration") if resume is not None else None
     best_state = resume.get("best_model") if resume is not None else None
+    if resume is not None and resume.get("best_criterion", "val_loss") != crit and best_state is not None:
+        say(f"run.keep changed to {cfg.run.keep}: the kept weights are chosen among the validations from here on")
+        best_val = best_score = best_iteration = best_state = None
 
     def checkpoint(it: int, epoch: int, final: bool = False) -> None:
         if not dist.is_main:
@@ -791,7 +797,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         payload = {"format": TRAIN_STATE_FORMAT, "iteration": it, "epoch": epoch,
                    "model": {k: v.detach().cpu() for k, v in sim.state_dict().items()},
                    "optimizer": _to_cpu(opt.state_dict()), "fingerprint": json.loads(json.dumps(_config_fingerprint(cfg))),
-                   "best_val": best_val, "first_val": first_val, "last_val": last_val, "resumed_from": resumed_from,
+                   "best_val": best_val, "best_score": best_score, "best_criterion": crit, "first_val": first_val, "last_val": last_val, "resumed_from": resumed_from,
                    "val_history": val_history, "best_iteration": best_iteration, "best_model": best_state,
                    "weights_checksum": _weights_checksum(sim)}
         _atomic_torch_save(payload, state_path)
@@ -804,11 +810,11 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
                  "world_size": dist.world, "weights_checksum": _weights_checksum(sim),
                  "run_iteration": it, "kept": "last", "train_episodes": train_names, "val_episodes": val_names}
         save_checkpoint(out_dir / "checkpoint_last.pt", sim, extra=extra)
-        if cfg.run.keep == "best" and best_state is not None:
+        if cfg.run.keep != "last" and best_state is not None:
             # checkpoint.pt: the weights of the best validation so far (not the latest ones)
             last_sd = {k: v.detach().clone() for k, v in sim.state_dict().items()}
             sim.load_state_dict(best_state)
-            best_extra = dict(extra, iteration=best_iteration, epoch=best_iteration // ipe, kept="best",
+            best_extra = dict(extra, iteration=best_iteration, epoch=best_iteration // ipe, kept=cfg.run.keep,
                               stage=stage_at(cfg, min(best_iteration // ipe, cfg.schedule.epochs - 1)).stage,
                               val_loss=best_val, weights_checksum=_weights_checksum(sim))
             save_checkpoint(out_dir / "checkpoint.pt", sim, extra=best_extra)
@@ -817,7 +823,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
             save_checkpoint(out_dir / "checkpoint.pt", sim, extra=extra)
 
     def run_validation(it: int, epoch: int) -> None:
-        nonlocal best_val, first_val, last_val, best_iteration, best_state
+        nonlocal best_val, best_score, first_val, last_val, best_iteration, best_state
         if not val_names:
             return
         t0 = time.time()
@@ -826,8 +832,9 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         val_history.append({"iteration": it, **{k: float(v[k]) for k in ("val_loss", "img", "points", "follow")}})
         if first_val is None:
             first_val = v["val_loss"]
-        if best_val is None or v["val_loss"] < best_val:  # ties keep the earlier weights
-            best_val, best_iteration = v["val_loss"], it
+        score = float(v[crit]) if math.isfinite(float(v[crit])) else math.inf  # no observed points: never better
+        if best_score is None or score < best_score:  # ties keep the earlier weights
+            best_score, best_val, best_iteration = score, v["val_loss"], it
             best_state = {k: t.detach().cpu().clone() for k, t in sim.state_dict().items()}
         if runlog is not None:
             runlog.add(kind="val", iteration=it, epoch=epoch, loss=v["val_loss"], img=v["img"],
@@ -892,7 +899,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
     summary = {"out": str(out_dir), "iterations": it, "total_iterations": total, "complete": it >= total,
                "world_size": dist.world, "val_loss_untrained": first_val, "val_loss": last_val,
                "val_history": val_history,
-               "best_val_loss": best_val, "best_iteration": best_iteration, "kept": cfg.run.keep, "resumed_from": resumed_from, "seconds": round(time.time() - t_start, 1),
+               "best_val_loss": best_val, "best_iteration": best_iteration, "kept": cfg.run.keep, "kept_score": best_score, "resumed_from": resumed_from, "seconds": round(time.time() - t_start, 1),
                "train_episodes": train_names, "val_episodes": val_names}
     if dist.distributed:  # what each replica ends with: identical weights, its own episodes
         (out_dir / "dist").mkdir(exist_ok=True)
