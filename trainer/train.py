@@ -784,7 +784,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
     first_val = resume.get("first_val") if resume is not None else None
     last_val = resume.get("last_val") if resume is not None else None
     val_history: list = list(resume.get("val_history", [])) if resume is not None else []
-    # the kept weights (run.keep: best): a CPU copy of the state dict with the lowest validation loss
+    # the kept weights (run.keep: best / best_points): a CPU copy of the state dict with the lowest criterion
     best_iteration = resume.get("best_iteration") if resume is not None else None
     best_state = resume.get("best_model") if resume is not None else None
     if resume is not None and resume.get("best_criterion", "val_loss") != crit and best_state is not None:
@@ -797,7 +797,8 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         payload = {"format": TRAIN_STATE_FORMAT, "iteration": it, "epoch": epoch,
                    "model": {k: v.detach().cpu() for k, v in sim.state_dict().items()},
                    "optimizer": _to_cpu(opt.state_dict()), "fingerprint": json.loads(json.dumps(_config_fingerprint(cfg))),
-                   "best_val": best_val, "best_score": best_score, "best_criterion": crit, "first_val": first_val, "last_val": last_val, "resumed_from": resumed_from,
+                   "best_val": best_val, "best_score": best_score, "best_criterion": crit,
+                   "first_val": first_val, "last_val": last_val, "resumed_from": resumed_from,
                    "val_history": val_history, "best_iteration": best_iteration, "best_model": best_state,
                    "weights_checksum": _weights_checksum(sim)}
         _atomic_torch_save(payload, state_path)

@@ -648,8 +648,8 @@ class Simulator(nn.Module):
         """The effect keys other than the reference ones (gravity, the support) and those fitted
         after training (``EffectSpec.fitted_after_training``): the terms the network was trained
         with beyond its equilibrium, e.g. its robot coupling (``passive_exempt``)."""
-        specs = dict(zip(self.effects.keys(), self.effects.specs))
-        return [k for k, e in self.effects.terms.items() if not e.in_reference and not specs[k].fitted_after_training]
+        return [s.instance_key for s in self.effects.specs
+                if not self.effects[s.instance_key].in_reference and not s.fitted_after_training]
 
     def set_passive_friction(self, mu: Optional[float], exempt: Optional[Sequence[str]] = None,
                              exempt_closed: Optional[bool] = None) -> "Simulator":
