@@ -24,6 +24,9 @@ whatever the simulation shows there, however far the miss, just as for a frozen 
 effect that leaves the object in the same height range can raise the model's depth RMSE to about
 the frozen object's and no further; where frozen / floor is under 2, no such effect can be halved
 on depth RMSE. (Chamfer has no such ceiling: an object blown off the table costs metres.)
+For information it also prints the same ratios for the depth RMSE over the union of the measured
+and the simulated object's pixels (``rmse_union``, JSON ``union``), which also charges a simulated
+object where the camera sees the table; it is not the acceptance's metric.
 
 It needs one evaluation of the unchanged model per dataset, and one of the frozen object (rope,
 6 held-out episodes: ~15 s each on one CPU core; cloth, 3: ~2 min), not the workflow's hour, and tells beforehand whether a test
@@ -43,6 +46,9 @@ from typing import Optional, Sequence
 
 METRICS = ("rmse", "chamfer")
 PASS = 2.0  # the acceptance halves the gap
+#: for information, not the acceptance's: depth RMSE over the union of the measured and the simulated
+#: object's pixels (symmetric: a simulated object where the camera sees the table costs too)
+UNION = "rmse_union"
 
 
 def headroom(before: dict, floor: dict, metrics: Sequence[str] = METRICS) -> dict:
@@ -138,9 +144,11 @@ def main(argv=None) -> int:
           f"{time.time() - t0:.0f} s): depth RMSE {_fmt(floor['mean']['rmse'])} m, "
           f"Chamfer {_fmt(floor['mean']['chamfer'])} m", flush=True)
     span = headroom(frozen["mean"], floor["mean"])
+    span_u = headroom(frozen["mean"], floor["mean"], (UNION,))[UNION]
     print(f"frozen object on {args.none} (the first frame never moved): depth RMSE {_fmt(frozen['mean']['rmse'])} m "
           f"({_fmt(span['rmse'], 2)}x the floor), Chamfer {_fmt(frozen['mean']['chamfer'])} m "
-          f"({_fmt(span['chamfer'], 2)}x)", flush=True)
+          f"({_fmt(span['chamfer'], 2)}x); union depth RMSE {_fmt(floor['mean'].get(UNION))} m (floor), "
+          f"{_fmt(frozen['mean'].get(UNION))} m ({_fmt(span_u, 2)}x)", flush=True)
     rows = {}
     for d in datasets:
         t1 = time.time()
@@ -148,10 +156,13 @@ def main(argv=None) -> int:
         h = headroom(before["mean"], floor["mean"])
         per = {ep: {**headroom(v, floor["episodes"][ep]), "task": before["tasks"][ep],
                     **{f"{m}_before": v.get(m) for m in METRICS}} for ep, v in before["episodes"].items()}
-        rows[d.name] = {"before": {m: before["mean"].get(m) for m in METRICS}, "headroom": h, "episodes": per}
+        hu = headroom(before["mean"], floor["mean"], (UNION,))[UNION]
+        rows[d.name] = {"before": {m: before["mean"].get(m) for m in METRICS}, "headroom": h, "episodes": per,
+                        "union": {"before": before["mean"].get(UNION), "headroom": hu}}
         print(f"{d.name}: depth RMSE {_fmt(before['mean']['rmse'])} m (headroom {_fmt(h['rmse'], 2)}x), "
               f"Chamfer {_fmt(before['mean']['chamfer'])} m (headroom {_fmt(h['chamfer'], 2)}x) -> "
-              f"{'can' if h['passable'] else 'cannot'} halve both ({time.time() - t1:.0f} s)", flush=True)
+              f"{'can' if h['passable'] else 'cannot'} halve both ({time.time() - t1:.0f} s); "
+              f"union depth RMSE {_fmt(before['mean'].get(UNION))} m ({_fmt(hu, 2)}x)", flush=True)
         for ep, e in per.items():
             print(f"    {ep} ({e['task']}): RMSE {_fmt(e['rmse_before'])} ({_fmt(e['rmse'], 2)}x)  "
                   f"Chamfer {_fmt(e['chamfer_before'])} ({_fmt(e['chamfer'], 2)}x)")

@@ -481,6 +481,7 @@ def test_headroom_cli_scores_the_workflow_heldout_episodes(clean_run, tmp_path, 
     rep = json.loads(out.read_text())["datasets"][data.name]
     assert rep["headroom"]["rmse"] == 1.0 and rep["headroom"]["chamfer"] == 1.0
     assert not rep["headroom"]["passable"]
+    assert rep["union"]["headroom"] == 1.0 and rep["union"]["before"] > 0  # the symmetric depth RMSE, for information
     frozen = json.loads(out.read_text())["frozen"]  # the first frame never moved, on the same episodes
     floor = json.loads(out.read_text())["floor"]
     for m in ("rmse", "chamfer"):
