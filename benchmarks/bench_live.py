@@ -815,7 +815,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         grasp, closing = object_grasp(x0, poser.down)
         up = -poser.down
         top = float((x0 @ up).max() - grasp @ up)
-        radius = float(live.sim.effects["robot"].params.radius) if "robot" in live.sim.effects else 0.05
+        radius = (live.sim.effects.robot_reach() or 0.05)
         # just out of reach: raise until every control point is beyond the robot effect's radius (+5 mm)
         h = top + 0.03
         while True:
@@ -841,7 +841,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         tcp_hover = live.action(hover).control_points.double().mean(0).numpy()
         sweep_a = poser.line(tcp_hover - 0.08 * along - 0.01 * poser.down, tcp_hover + 0.08 * along - 0.01 * poser.down,
                              60, q0=hover, closing=closing)
-        radius = float(live.sim.effects["robot"].params.radius) if "robot" in live.sim.effects else 0.05
+        radius = (live.sim.effects.robot_reach() or 0.05)
         reach = min(float(torch.cdist(torch.as_tensor(x0), live.action(v).control_points.double()).min()) for v in sweep_a)
         if reach <= radius:
             raise RuntimeError(f"the rate sweep comes within {reach:.3f} m of the object (reach {radius} m)")

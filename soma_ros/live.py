@@ -195,8 +195,8 @@ class LiveSimulator:
         self.settle_speed = float(settle_speed)
         self.settles = 0
         self._quiet_steps = 0
-        robot_force = sim.effects["robot"] if "robot" in sim.effects else None
-        self._reach = (float(robot_force.params.radius) if robot_force is not None else 0.05) + 0.01
+        reach = sim.effects.robot_reach()
+        self._reach = (reach if reach is not None else 0.05) + 0.01
         self.bundle = bundle
         self.robot = robot
         self.scene = bundle.scene_context()

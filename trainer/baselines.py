@@ -108,7 +108,7 @@ class SimulatorModel(RolloutModel):
 
     def __init__(self, sim: Simulator, use_actions: Optional[bool] = None, name: str = "") -> None:
         self.sim = sim.eval()
-        has_robot = any(e.name == "robot" for e in sim.config.effects)
+        has_robot = sim.effects.robot_reach() is not None  # a term the robot drives (robot, physics)
         self.use_actions = has_robot if use_actions is None else bool(use_actions)
         self.name = name
 

@@ -499,15 +499,15 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
         key = name
     for p in model.parameters():
         p.requires_grad_(False)
-    params = list(model.effects[key].parameters())
+    named = model.acting_parameters(key)  # through a physics prior, or as the term's own force
+    params = [p for _, p in named]
     for p in params:
         p.requires_grad_(True)
     model.eval()
     losses: list[float] = []
     if params and iters > 0 and fit_obs:
-        eff = model.effects[key]
-        scale = getattr(eff, "fit_scale", {}) or {}
-        groups = [{"params": [p], "lr": cfg.fit_lr * float(scale.get(n, 1.0))} for n, p in eff.named_parameters()]
+        scale = getattr(model.effects[key], "fit_scale", {}) or {}
+        groups = [{"params": [p], "lr": cfg.fit_lr * float(scale.get(n, 1.0))} for n, p in named]
         opt = torch.optim.Adam(groups, lr=cfg.fit_lr)
         # cosine decay of every step size to fit_lr_final of its start: big steps to reach a
         # large effect, small ones to settle on it
@@ -551,7 +551,7 @@ def _line_search(model: Simulator, name: str, theta0: list[torch.Tensor], obs: S
     with the scale a in {0} + ``scales`` of the lowest residual sum on ``obs`` (``base``: at
     a = 0). A fit that does not lower it is undone (a = 0); an over- or undershoot of the
     stochastic fit is corrected. Returns (a, residual sum)."""
-    params = list(model.effects[name].parameters())
+    params = [p for _, p in model.acting_parameters(name)]
     theta = [p.detach().clone() for p in params]
     best_a, best = 0.0, base
     for a in scales:
@@ -568,7 +568,7 @@ def _line_search(model: Simulator, name: str, theta0: list[torch.Tensor], obs: S
 
 
 def _values(model: Simulator, name: str) -> dict:
-    return {n: p.detach().cpu().reshape(-1).tolist() for n, p in model.effects[name].named_parameters()}
+    return {n: p.detach().cpu().reshape(-1).tolist() for n, p in model.acting_parameters(name)}
 
 
 def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Sequence[EpisodeObs],
@@ -613,14 +613,14 @@ def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Seq
         rec: dict = {}
         if ref_obs:  # calibration on the model's own conditions
             calib, _, _ = fit_effect(sim, name, ref_obs, ref_scene, cfg, cfg.fit_iters, log)
-            zero = [torch.zeros_like(p) for p in calib.effects[name].parameters()]
+            zero = [torch.zeros_like(p) for _, p in calib.acting_parameters(name)]
             a, r = _line_search(calib, name, zero, ref_obs, ref_scene, cfg.line_search, ref_base)
             rec.update(reference_parameters=_values(calib, name), reference_explained=1.0 - r / max(ref_base, 1e-12),
                        reference_scale=a)
             cand_base[name] = [[residual_per_frame(calib, o, scene) for o in held_obs], list(base)]
             fit_start = float(sum(residual_per_frame(calib, o, scene).sum() for o in fit_obs))
             model, losses, _ = fit_effect(calib, name, fit_obs, scene, cfg, cfg.fit_iters, log, key=name)
-            theta0 = [p.detach().clone() for p in calib.effects[name].parameters()]
+            theta0 = [p.detach().clone() for _, p in calib.acting_parameters(name)]
             # the same budget on the reference: the re-fit continues an optimisation the calibration
             # may not have finished, and what more steps on *any* data would find is not new
             cont, _, _ = fit_effect(calib, name, ref_obs, ref_scene, cfg, cfg.fit_iters, log, key=name)
@@ -631,7 +631,7 @@ def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Seq
             model, losses, _ = fit_effect(sim, name, fit_obs, scene, cfg, cfg.fit_iters, log)
             cand_base[name] = [list(base)]
             fit_start = fit_base
-            theta0 = [torch.zeros_like(p) for p in model.effects[name].parameters()]
+            theta0 = [torch.zeros_like(p) for _, p in model.acting_parameters(name)]
         best_a, fit_with = _line_search(model, name, theta0, fit_obs, scene, cfg.line_search, fit_start)
         values = _values(model, name)
         cand_res[name] = [residual_per_frame(model, o, scene) for o in held_obs]

@@ -229,12 +229,12 @@ def rest_reach(sim: Simulator, margin: float = 0.01) -> Optional[float]:
     """Robot-effect radius + margin when the robot force is the model's only effect outside the
     at-rest reference, besides effects that vanish at rest (drag, table friction): then frames
     before contact are exactly at rest. Else None."""
-    robot_keys = [k for k in sim.effects.keys() if sim.effects[k].name == "robot"]
+    robot_keys = [k for k in sim.effects.keys() if sim.effects[k].robot_reach() is not None]
     others = [k for k in sim.effects.keys() if not sim.effects[k].in_reference and k not in robot_keys
               and not sim.effects[k].zero_at_rest]
     if others or not robot_keys:
         return None
-    return max(float(sim.effects[k].params.radius) for k in robot_keys) + margin
+    return max(sim.effects[k].robot_reach() for k in robot_keys) + margin
 
 
 def lr_at(cfg: TrainConfig, it: int) -> float:

@@ -106,6 +106,10 @@ class EffectContext:
     control_points         [P, 3]     robot control points at t (or None: no robot)
     control_velocities     [P, 3]     their velocities, m/s (or None)
     gripper                []         gripper state c_t in [0, 1] (or None)
+    rest_positions         [N, 3]     the episode's initial splat positions (or None)
+    cache                  dict       per-episode constants an effect builds once (or None)
+    physics_mods           -          :class:`~.physics.PhysicsMods` the other terms ask of a
+                                      physics prior (set by :class:`EffectSet`; or None)
     =====================  =========  =================================================
     """
 
@@ -120,6 +124,9 @@ class EffectContext:
     control_points: Optional[torch.Tensor] = None
     control_velocities: Optional[torch.Tensor] = None
     gripper: Optional[torch.Tensor] = None
+    rest_positions: Optional[torch.Tensor] = None
+    cache: Optional[dict] = None
+    physics_mods: Optional[object] = None
 
     def __post_init__(self) -> None:
         n = self.positions.shape[0]
@@ -138,6 +145,8 @@ class EffectContext:
                 raise ValueError("EffectContext.control_velocities must be [P, 3] with control_points")
             if self.gripper is None or self.gripper.numel() != 1:
                 raise ValueError("EffectContext.gripper must be a scalar tensor with control_points")
+        if self.rest_positions is not None and tuple(self.rest_positions.shape) != (n, 3):
+            raise ValueError(f"EffectContext.rest_positions must be [{n}, 3], got {list(self.rest_positions.shape)}")
 
     @property
     def num_nodes(self) -> int:
@@ -185,6 +194,8 @@ class Effect(nn.Module):
     #: steps every parameter by a learning rate times this covers a comparable range of force
     #: (the discrepancy workflow's Adam steps, :func:`trainer.discrepancy.fit_effect`)
     fit_scale: ClassVar[dict[str, float]] = {}
+    #: a physics prior (:mod:`.physics`): the other terms act through it (``physics_modifier``)
+    hosts_modifiers: ClassVar[bool] = False
 
     @dataclass
     class Params:
@@ -197,6 +208,28 @@ class Effect(nn.Module):
 
     def forward(self, ctx: EffectContext) -> torch.Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
+
+    def physics_modifier(self, ctx: EffectContext):
+        """What this term changes in a physics prior (:class:`~.physics.PhysicsMods`), or None: a
+        term with a physical meaning there (wind, drag, friction, grip, mass, stiffness) acts
+        through the prior instead of as a force of its own when the model has one."""
+        return None
+
+    def robot_reach(self) -> Optional[float]:
+        """How close (m) a robot control point must come for this term to act on the object,
+        or None for a term the robot does not drive."""
+        return None
+
+    #: parameters that act only through a physics prior, and those that act only as the term's own
+    #: force (without one): the discrepancy workflow fits the ones that act in the model at hand
+    prior_only: ClassVar[tuple[str, ...]] = ()
+    force_only: ClassVar[tuple[str, ...]] = ()
+
+    def acting_parameters(self, through_prior: bool) -> list[tuple[str, nn.Parameter]]:
+        """(name, parameter) of the learnable parameters that change this term's action, acting
+        through a physics prior (``through_prior``) or as a force of its own."""
+        skip = self.force_only if through_prior else self.prior_only
+        return [(n, p) for n, p in self.named_parameters() if n not in skip]
 
     def extra_repr(self) -> str:
         return ", ".join(f"{f.name}={getattr(self.params, f.name)!r}" for f in dataclasses.fields(self.params))
@@ -260,11 +293,36 @@ class EffectSet(nn.Module):
     def __contains__(self, key: str) -> bool:
         return key in self.terms
 
+    @property
+    def physics_host(self) -> Optional[str]:
+        """Key of the physics prior (an effect with ``hosts_modifiers``), or None."""
+        return next((k for k, e in self.terms.items() if e.hosts_modifiers), None)
+
+    def robot_reach(self) -> Optional[float]:
+        """The largest reach of the terms the robot drives (``Effect.robot_reach``), or None."""
+        reach = [r for r in (e.robot_reach() for e in self.terms.values()) if r is not None]
+        return max(reach) if reach else None
+
+    def _with_modifiers(self, ctx: EffectContext) -> tuple[EffectContext, set]:
+        """With a physics prior: the context carrying what the other terms change in it, and the
+        keys of those terms (they act through the prior, not as forces of their own)."""
+        if self.physics_host is None:
+            return ctx, set()
+        from .physics import PhysicsMods
+
+        mods, keys = PhysicsMods(), set()
+        for key, eff in self.terms.items():
+            m = None if eff.hosts_modifiers else eff.physics_modifier(ctx)
+            if m is not None:
+                mods, keys = mods.add(m), keys | {key}
+        return dataclasses.replace(ctx, physics_mods=mods), keys
+
     def forward(self, ctx: EffectContext, reference_only: bool = False) -> torch.Tensor:
         """Total force [N, 3] (newtons); ``reference_only`` sums the in-reference effects only."""
         total = ctx.positions.new_zeros((ctx.num_nodes, 3))
+        ctx, through = self._with_modifiers(ctx) if not reference_only else (ctx, set())
         for key, eff in self.terms.items():
-            if reference_only and not eff.in_reference:
+            if (reference_only and not eff.in_reference) or key in through:
                 continue
             f = eff(ctx)
             if tuple(f.shape) != (ctx.num_nodes, 3):
@@ -296,7 +354,10 @@ class EffectSet(nn.Module):
         total = ctx.positions.new_zeros((ctx.num_nodes, 3))
         direct = None
         level = 0 if check_active else 2
+        ctx, through = self._with_modifiers(ctx)
         for key, eff in self.terms.items():
+            if key in through:  # acts through the physics prior
+                continue
             f = eff(ctx)
             if tuple(f.shape) != (ctx.num_nodes, 3):
                 raise RuntimeError(f"effect {key!r} returned shape {list(f.shape)}, expected [{ctx.num_nodes}, 3]")
@@ -311,8 +372,10 @@ class EffectSet(nn.Module):
         return total, direct, level
 
     def per_term(self, ctx: EffectContext) -> dict[str, torch.Tensor]:
-        """Force [N, 3] of every effect, by key."""
-        return {k: e(ctx) for k, e in self.terms.items()}
+        """Force [N, 3] of every effect, by key (a term acting through a physics prior: zeros)."""
+        ctx, through = self._with_modifiers(ctx)
+        return {k: (ctx.positions.new_zeros((ctx.num_nodes, 3)) if k in through else e(ctx))
+                for k, e in self.terms.items()}
 
 
 def build_effects(specs: Iterable[Union[EffectSpec, str, dict]], attr_dim: int = 0) -> EffectSet:
@@ -475,6 +538,9 @@ class RobotForce(Effect):
         node.append(nn.Linear(h, 3, bias=False))  # a bias would cancel in node_mlp(agg) - node_mlp(0)
         self.node_mlp = nn.Sequential(*node)
 
+    def robot_reach(self) -> Optional[float]:
+        return float(self.params.radius)
+
     def edges(self, ctx: EffectContext) -> tuple[torch.Tensor, torch.Tensor]:
         """(control-point index [E], splat index [E]): each control point's nearest
         ``max_neighbors`` splats closer than the radius."""
@@ -574,22 +640,37 @@ def near_box(points: torch.Tensor, x: torch.Tensor, r: float) -> torch.Tensor:
 
 @register_effect("wind")
 class Wind(Effect):
-    """Constant acceleration field (m/s^2) times mass; learnable, zero by default."""
+    """Constant acceleration field (m/s^2) times mass; learnable, zero by default.
+
+    In a model with a physics prior (:mod:`.physics`) the field acts inside it; ``form``
+    ``pressure`` (default) lets only its component across a line's tangent or along a sheet's
+    normal act, as moving air presses on a rope or a cloth (a cloth lying flat in a horizontal
+    wind feels nothing), ``field`` all of it. Without a prior the field acts on every splat."""
 
     fit_scale = {"accel": 9.81}  # m/s^2: a force field comparable to the object's weight
+    FORMS = ("pressure", "field")
 
     @dataclass
     class Params:
         accel: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+        form: str = "pressure"
 
     def __init__(self, params, *, attr_dim: int = 0) -> None:
         super().__init__(params, attr_dim=attr_dim)
         if len(params.accel) != 3:
             raise ConfigError(f"effect wind: accel must have 3 entries, got {params.accel}")
+        if params.form not in self.FORMS:
+            raise ConfigError(f"effect wind: form must be one of {', '.join(self.FORMS)}, got {params.form!r}")
         self.accel = _param(list(params.accel))
 
     def forward(self, ctx: EffectContext) -> torch.Tensor:
         return ctx.masses[:, None] * self.accel.to(ctx.positions.dtype)[None, :]
+
+    def physics_modifier(self, ctx: EffectContext):
+        from .physics import PhysicsMods
+
+        a = self.accel.to(ctx.positions.dtype)
+        return PhysicsMods(pressure=a) if self.params.form == "pressure" else PhysicsMods(accel=a)
 
 
 @register_effect("linear_drag")
@@ -608,6 +689,11 @@ class LinearDrag(Effect):
 
     def forward(self, ctx: EffectContext) -> torch.Tensor:
         return -(self.coeff * ctx.masses)[:, None] * ctx.velocities
+
+    def physics_modifier(self, ctx: EffectContext):
+        from .physics import PhysicsMods
+
+        return PhysicsMods(linear_drag=self.coeff)
 
 
 @register_effect("quadratic_drag")
@@ -630,5 +716,11 @@ class QuadraticDrag(Effect):
         speed = torch.sqrt((v * v).sum(-1, keepdim=True) + 1e-18)
         return -(self.coeff * ctx.masses)[:, None] * speed * v
 
+    def physics_modifier(self, ctx: EffectContext):
+        from .physics import PhysicsMods
+
+        return PhysicsMods(quadratic_drag=self.coeff)
+
 
 from . import effects_library  # noqa: E402,F401
+from . import physics  # noqa: E402,F401

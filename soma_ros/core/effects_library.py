@@ -53,7 +53,7 @@ import torch
 from .config import ConfigError
 from .effects import Effect, EffectContext, _param, register_effect
 
-__all__ = ["TableFriction", "GripperSlip", "MassScale", "smoothstep"]
+__all__ = ["TableFriction", "GripperSlip", "MassScale", "StiffnessScale", "smoothstep"]
 
 
 def smoothstep(t: torch.Tensor) -> torch.Tensor:
@@ -89,16 +89,26 @@ class TableFriction(Effect):
         g_n = torch.clamp(-(ctx.gravity @ n), min=0.0)
         return -(self.mu * g_n) * (ctx.masses * w)[:, None] * vt / speed
 
+    def physics_modifier(self, ctx: EffectContext):
+        from .physics import PhysicsMods
+
+        return PhysicsMods(friction=self.mu)
+
 
 @register_effect("gripper_slip")
 class GripperSlip(Effect):
     """Extra velocity coupling and sag of the grasped object as a whole (module docstring)."""
+
+    fit_scale = {"loosen": 3.0}  # log units: a grip e^3 = 20 times more compliant
+    prior_only = ("loosen",)
+    force_only = ("hold", "sag")
 
     @dataclass
     class Params:
         hold: float = 0.0  # fraction per step
         sag: float = 0.0  # fraction of g
         radius: float = 0.03  # m
+        loosen: float = 0.0  # with a physics prior: the grip's compliance x e^loosen
 
     def __init__(self, params, *, attr_dim: int = 0) -> None:
         super().__init__(params, attr_dim=attr_dim)
@@ -106,6 +116,12 @@ class GripperSlip(Effect):
             raise ConfigError(f"effect gripper_slip: radius must be > 0, got {params.radius}")
         self.hold = _param(float(params.hold))
         self.sag = _param(float(params.sag))
+        self.loosen = _param(float(params.loosen))
+
+    def physics_modifier(self, ctx: EffectContext):
+        from .physics import PhysicsMods
+
+        return PhysicsMods(grip=self.loosen)
 
     def forward(self, ctx: EffectContext) -> torch.Tensor:
         out = ctx.positions.new_zeros((ctx.num_nodes, 3))
@@ -145,3 +161,34 @@ class MassScale(Effect):
     def forward(self, ctx: EffectContext) -> torch.Tensor:
         s = smoothstep((ctx.signed_distance() - self.params.d0) / (self.params.d1 - self.params.d0))
         return (self.excess * ctx.masses * s)[:, None] * ctx.gravity.to(ctx.positions.dtype)[None, :]
+
+    def physics_modifier(self, ctx: EffectContext):
+        from .physics import PhysicsMods
+
+        return PhysicsMods(mass=self.excess)
+
+
+@register_effect("stiffness_scale")
+class StiffnessScale(Effect):
+    """A stiffer (> 0) or softer (< 0) material: with a physics prior its stretch and bending
+    compliances are divided by e^log_scale. Without one it has no handle (the elasticity lives
+    in the network) and exerts no force."""
+
+    fit_scale = {"log_scale": 2.0}
+    prior_only = ("log_scale",)
+
+    @dataclass
+    class Params:
+        log_scale: float = 0.0
+
+    def __init__(self, params, *, attr_dim: int = 0) -> None:
+        super().__init__(params, attr_dim=attr_dim)
+        self.log_scale = _param(float(params.log_scale))
+
+    def forward(self, ctx: EffectContext) -> torch.Tensor:
+        return ctx.positions.new_zeros(ctx.positions.shape)
+
+    def physics_modifier(self, ctx: EffectContext):
+        from .physics import PhysicsMods
+
+        return PhysicsMods(stiffness=self.log_scale)

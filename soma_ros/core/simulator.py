@@ -246,6 +246,9 @@ class Episode:
     reference_mode: str = "initial"
     reference: list[Optional[torch.Tensor]] = field(default_factory=list)
     static_rest_vectors: list[Optional[torch.Tensor]] = field(default_factory=list)
+    #: constants an effect builds once per episode (``EffectContext.cache``; e.g. the physics
+    #: prior's nodes and constraints), shared by every state of the rollout
+    cache: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -495,6 +498,13 @@ class Simulator(nn.Module):
         self.config.effects = self.effects.specs
         return eff
 
+    def acting_parameters(self, key: str) -> list[tuple[str, nn.Parameter]]:
+        """(name, parameter) of effect ``key`` that act in this model: through its physics prior if it
+        has one (``EffectSet.physics_host``), else as the term's own force (``Effect.acting_parameters``)."""
+        eff = self.effects[key]
+        through = self.effects.physics_host is not None and not eff.hosts_modifiers
+        return eff.acting_parameters(through)
+
     def effect_parameters(self, key: str) -> list[nn.Parameter]:
         """Trainable parameters of one effect (to fit it alone)."""
         return [p for p in self.effects[key].parameters() if p.requires_grad]
@@ -614,7 +624,7 @@ class Simulator(nn.Module):
         return EffectContext(
             positions=x, velocities=v, masses=ep.masses[0], attrs=ep.attrs[0], gravity=ep.scene.gravity,
             plane_normal=ep.scene.plane_normal, plane_offset=ep.scene.plane_offset, dt=dt,
-            control_points=cp, control_velocities=cpv, gripper=grip,
+            control_points=cp, control_velocities=cpv, gripper=grip, rest_positions=ep.rest[0], cache=ep.cache,
         )
 
     def forces(self, state: SimState, action: Optional[RobotAction], reference_only: bool = False) -> torch.Tensor:
@@ -633,7 +643,8 @@ class Simulator(nn.Module):
         if action is not None and not isinstance(action, RobotAction):
             raise TypeError(f"step: action must be a RobotAction or None, got {type(action).__name__}")
         dyn = self.config.dynamics
-        passive_rule = dyn.passive_friction is not None
+        # a physics prior carries its own table, friction and gravity: the rule is for models without one
+        passive_rule = dyn.passive_friction is not None and self.effects.physics_host is None
         exempt = dyn.passive_exempt
         if exempt and dyn.passive_exempt_closed and (action is None or action.is_open):
             exempt = []  # an open gripper's coupling drags, it does not carry: the step stays passive

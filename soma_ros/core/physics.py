@@ -1,0 +1,370 @@
+"""Physics prior: a position-based model of the object that drives the learned dynamics.
+
+Effect ``physics`` (registry; ``direct``, ``feature: false`` in the training configs that use
+it). Why: on a CPU training budget the hierarchical network learns little beyond its priors
+(README "Accuracy"), and the robot coupling's carry lifts an object as a rigid whole, while a
+rope grasped near one end and lifted hangs from the fingers down to the table
+(docs/discrepancy.md, "A physics prior"). A term the network never saw (wind, a slipping grip)
+moves a learned model only as a force integrated on top of it, which a held object answers
+with a drift, not a swing. This term gives the object physical behaviour -- it hangs, it is
+inextensible, the table carries and brakes it, the gripper holds and pushes it -- and gives
+the discrepancy workflow's candidate effects (wind, drag, table friction, a slipping grip,
+mass, stiffness) a physical meaning: they act inside this model (:class:`PhysicsMods`).
+
+Model (per step t -> t+1, stateless: everything is read from the simulator's state)
+-------------------------------------------------------------------------------------
+* **Nodes.** ``num_nodes`` farthest-point samples of the episode's initial splats; every splat
+  belongs to its nearest sample's cell, a node is its cell's centre of mass and moves with
+  it (position and velocity = the mass-weighted means of its splats' at t).
+* **Constraints** between nodes (rest lengths from the initial state): stretch to the nearest
+  ``neighbors`` within ``spring_radius_factor`` x the median node spacing, bending to the next
+  ``bend_neighbors`` out to ``bend_radius_factor`` x spacing; solved by ``iterations``
+  over-relaxed Jacobi passes per substep with per-constraint compliances (XPBD form, per unit
+  rest length). Long bending pairs make a rope or cloth as stiff as its data says.
+* **Gravity** from the scene, still-air damping ``exp(-damping h)`` per substep.
+* **Table**: a node may not go below its initial height above the plane (capped at
+  ``contact_offset_max``, so nodes resting on the table stay where they were reconstructed);
+  pushed below it is projected back and its tangential displacement is reduced by Coulomb
+  friction ``mu x depth``.
+* **Gripper** (the action at t+1; control points move linearly from t within the step): while
+  the gripper is closed, the nodes within ``attach_radius`` of the control points' centroid
+  are held at their offset to their nearest control point (compliance ``grip_compliance``,
+  re-captured every step: a grip too weak for its load lets the object slide through, step by
+  step); free nodes are pushed out of ``contact_radius`` around every control point.
+* ``substeps`` per step. The nodes' displacement over the step gives a velocity change per
+  node, carried to the splats by linear-blend skinning (``skin_neighbors`` nearest nodes); the
+  term's force makes the fraction ``gain`` of it happen:
+  ``F_i = m_i gain sum_k W_ik (v_k' - v_k) / dt``. The network adds its own motion on top.
+
+At rest stays at rest: with no control point within ``reach`` of any node, every node at
+exactly zero velocity and no modifier force, the force is exactly zero (no constraint solve),
+so the simulator's rest fixed point holds bit for bit (:mod:`.simulator`).
+
+Learnable: log compliances (stretch, bending, grip), log damping, friction, the gain's logit.
+
+Effect modifiers (:class:`PhysicsMods`, collected by :class:`~.effects.EffectSet` from the other
+terms' ``physics_modifier``): ``accel`` [3] (a uniform field, m/s^2), ``pressure`` [3] (the part of
+a field across a line's tangent or along a sheet's normal: wind on a rope or cloth), linear and
+quadratic drag, a friction change, the grip's log compliance factor, the mass excess (a heavier
+object: the same gravity, relatively softer constraints and grip), a log stiffness factor.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Optional
+
+import torch
+from torch import nn
+
+from .config import ConfigError
+from .effects import Effect, EffectContext, register_effect
+from .spring_mass import farthest_point_sampling, neighbour_pairs, skin_weights
+
+__all__ = ["PhysicsMods", "PhysicsLayout", "PhysicsPrior", "build_layout", "pbd_step"]
+
+
+@dataclass
+class PhysicsMods:
+    """Changes of the physics prior asked by other effect terms (all zero = nominal). Tensors
+    are 0-d (scalars) or [3]; None = absent."""
+
+    accel: Optional[torch.Tensor] = None  # [3] m/s^2, uniform
+    pressure: Optional[torch.Tensor] = None  # [3] m/s^2, the field whose cross / normal part acts
+    linear_drag: Optional[torch.Tensor] = None  # 1/s
+    quadratic_drag: Optional[torch.Tensor] = None  # 1/m
+    friction: Optional[torch.Tensor] = None  # added to the table's mu
+    grip: Optional[torch.Tensor] = None  # grip compliance x exp(grip)
+    mass: Optional[torch.Tensor] = None  # the object is (1 + mass) times heavier (> -0.9)
+    stiffness: Optional[torch.Tensor] = None  # stretch and bending compliances / exp(stiffness)
+
+    def add(self, other: "PhysicsMods") -> "PhysicsMods":
+        """The sum of two sets of changes (fields present in either)."""
+        out = PhysicsMods()
+        for name in self.__dataclass_fields__:
+            a, b = getattr(self, name), getattr(other, name)
+            setattr(out, name, a if b is None else (b if a is None else a + b))
+        return out
+
+    def pushes(self) -> bool:
+        """Whether a change here can move an object at rest (a field, not a drag or a scale)."""
+        return any(v is not None and bool((v != 0).any()) for v in (self.accel, self.pressure))
+
+
+@dataclass
+class PhysicsLayout:
+    """Constants of one episode (:func:`build_layout`): K nodes, E constraints, N splats."""
+
+    node_of: torch.Tensor  # [N] long: the cell (node) of every splat
+    node_mass: torch.Tensor  # [K]
+    rest: torch.Tensor  # [K, 3] node rest positions (cell centres of mass)
+    si: torch.Tensor  # [E]
+    sj: torch.Tensor  # [E]
+    rest_len: torch.Tensor  # [E]
+    bend: torch.Tensor  # [E] bool: a bending pair (else stretch)
+    degree: torch.Tensor  # [K] constraints per node
+    floor: torch.Tensor  # [K] lowest signed distance to the table plane
+    skin_idx: torch.Tensor  # [N, k]
+    skin_w: torch.Tensor  # [N, k]
+    spacing: float
+    sheet: bool
+
+    @property
+    def num_nodes(self) -> int:
+        return int(self.rest.shape[0])
+
+
+def _is_sheet(rest: torch.Tensor) -> bool:
+    """Two comparable large extents and a thin third: a sheet (cloth); else a line or a volume."""
+    if rest.shape[0] < 4:
+        return False
+    ev = torch.linalg.eigvalsh(torch.cov(rest.t().double())).clamp_min(0).sqrt()  # ascending std
+    return bool(ev[1] > 0.3 * ev[2] and ev[0] < 0.2 * ev[1])
+
+
+@torch.no_grad()
+def build_layout(rest_splats: torch.Tensor, masses: torch.Tensor, plane_normal: torch.Tensor,
+                 plane_offset: torch.Tensor, p: "PhysicsPrior.Params") -> PhysicsLayout:
+    """Nodes, constraints, floors and skinning of an episode from its initial splats [N, 3]."""
+    x = rest_splats.detach()
+    dev, dt_ = x.device, x.dtype
+    n = int(x.shape[0])
+    if n < 2:
+        raise ValueError(f"physics prior: need at least 2 splats, got {n}")
+    K = min(int(p.num_nodes), n)
+    seeds = x[farthest_point_sampling(x.cpu(), K).to(dev)]
+    node_of = torch.cdist(x, seeds).argmin(dim=1)  # [N]
+    m = masses.detach().to(dt_)
+    node_mass = torch.zeros(K, dtype=dt_, device=dev).index_add_(0, node_of, m)
+    keep = node_mass > 0  # every seed owns itself, but be safe
+    if not bool(keep.all()):
+        remap = torch.cumsum(keep.long(), 0) - 1
+        node_of = remap[node_of]
+        node_mass = node_mass[keep]
+        K = int(keep.sum())
+    rest = torch.zeros(K, 3, dtype=dt_, device=dev).index_add_(0, node_of, m[:, None] * x) / node_mass[:, None]
+    d = torch.cdist(rest, rest)
+    d.fill_diagonal_(math.inf)
+    spacing = max(float(d.min(dim=1).values.median()), 1e-6) if K > 1 else 1e-3
+    dc = d.cpu()
+    stretch = neighbour_pairs(dc, p.neighbors, p.spring_radius_factor * spacing)
+    bend = neighbour_pairs(dc, p.bend_neighbors, p.bend_radius_factor * spacing, skip=p.neighbors)
+    if bend.numel() and stretch.numel():  # a pair that is a stretch pair stays one
+        ks = set((stretch[0] * K + stretch[1]).tolist())
+        bend = bend[:, torch.tensor([int(a) * K + int(b) not in ks for a, b in bend.t()], dtype=torch.bool)]
+    pairs = torch.cat([stretch, bend], dim=1).to(dev)
+    is_bend = torch.cat([torch.zeros(stretch.shape[1], dtype=torch.bool), torch.ones(bend.shape[1], dtype=torch.bool)]).to(dev)
+    rest_len = (rest[pairs[0]] - rest[pairs[1]]).norm(dim=-1).clamp_min(1e-6)
+    degree = torch.bincount(pairs.reshape(-1), minlength=K).to(dt_)
+    nrm = plane_normal.detach().to(dt_)
+    floor = (rest @ nrm + plane_offset.detach().to(dt_)).clamp(min=0.0, max=float(p.contact_offset_max))
+    ci, w = skin_weights(x, rest, p.skin_neighbors, spacing)
+    return PhysicsLayout(node_of=node_of, node_mass=node_mass, rest=rest, si=pairs[0], sj=pairs[1],
+                         rest_len=rest_len, bend=is_bend, degree=degree, floor=floor, skin_idx=ci, skin_w=w.to(dt_),
+                         spacing=spacing, sheet=_is_sheet(rest))
+
+
+def _pressure(lay: PhysicsLayout, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """The part of the field w [3] each node's surface element feels [K, 3]: along its normal
+    (sheet) or across its tangent (line, volume), local shape from its stretch edges."""
+    K = x.shape[0]
+    st = ~lay.bend
+    si, sj = lay.si[st], lay.sj[st]
+    d = x[sj] - x[si]
+    d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    o = (d[:, :, None] * d[:, None, :]).reshape(-1, 9)
+    cov = x.new_zeros(K, 9).index_add(0, si, o).index_add(0, sj, o).reshape(K, 3, 3)
+    cov = cov + 1e-6 * torch.eye(3, dtype=x.dtype, device=x.device)
+    _, evecs = torch.linalg.eigh(cov)  # ascending
+    if lay.sheet:
+        nrm = evecs[..., :, 0]
+        return (nrm @ w)[:, None] * nrm
+    t = evecs[..., :, 2]
+    return w[None, :] - (t @ w)[:, None] * t
+
+
+def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torch.Tensor, plane_normal: torch.Tensor,
+             plane_offset: torch.Tensor, dt: float, p: "PhysicsPrior.Params", coef: dict[str, torch.Tensor],
+             cp0: Optional[torch.Tensor] = None, cp1: Optional[torch.Tensor] = None, closed: bool = False,
+             mods: Optional[PhysicsMods] = None) -> torch.Tensor:
+    """Node positions [K, 3] after one step of ``dt`` from positions x and velocities v [K, 3].
+
+    ``coef``: the learnable coefficients as tensors (``stretch``, ``bend``, ``grip`` compliances,
+    ``damping``, ``friction``); ``cp0`` / ``cp1`` [P, 3]: the control points at t and t+1 (None:
+    no robot); ``closed``: the gripper holds. Differentiable in x, v, coef and mods."""
+    mods = mods or PhysicsMods()
+    K = x.shape[0]
+    h = float(dt) / p.substeps
+    h2 = h * h
+    stiff = torch.exp(mods.stiffness) if mods.stiffness is not None else None
+    alpha = torch.where(lay.bend, coef["bend"], coef["stretch"]) / (h2 * lay.rest_len)  # [E]
+    if stiff is not None:
+        alpha = alpha / stiff
+    w_inv = 1.0 / (1.0 + mods.mass.clamp_min(-0.9)) if mods.mass is not None else x.new_ones(())  # per unit mass
+    a_grip = coef["grip"] / h2
+    if mods.grip is not None:
+        a_grip = a_grip * torch.exp(mods.grip)
+    damp = torch.exp(-coef["damping"] * h)
+    mu = coef["friction"].clamp_min(0.0)
+    if mods.friction is not None:
+        mu = (mu + mods.friction).clamp_min(0.0)
+    acc0 = gravity.to(x.dtype)
+    if mods.accel is not None:
+        acc0 = acc0 + mods.accel.to(x.dtype)
+    nrm = plane_normal.to(x.dtype)
+    off = plane_offset.to(x.dtype)
+    inv_deg = (p.relaxation / lay.degree.clamp_min(1.0))[:, None]
+    held = None
+    if cp0 is not None and closed:
+        centre = cp0.mean(dim=0)
+        held = (x.detach() - centre).norm(dim=-1) <= p.attach_radius  # [K]
+        if bool(held.any()):
+            jn = torch.cdist(x.detach(), cp0).argmin(dim=-1)  # [K]
+            h_off = x - cp0[jn]
+        else:
+            held = None
+    heldf = held.to(x.dtype)[:, None] if held is not None else None
+    for s in range(p.substeps):
+        cps = None if cp0 is None else cp0 + ((s + 1) / p.substeps) * (cp1 - cp0)
+        acc = acc0
+        if mods.pressure is not None:
+            acc = acc + _pressure(lay, x, mods.pressure.to(x.dtype))
+        if mods.linear_drag is not None:
+            acc = acc - mods.linear_drag * v
+        if mods.quadratic_drag is not None:
+            acc = acc - mods.quadratic_drag * v.norm(dim=-1, keepdim=True) * v
+        v = (v + h * acc) * damp
+        q = x + h * v
+        for _ in range(p.iterations):
+            d = q[lay.sj] - q[lay.si]
+            length = d.norm(dim=-1).clamp_min(1e-9)
+            lam = -(length - lay.rest_len) / (2.0 * w_inv + alpha)  # [E]
+            corr = (lam / length)[:, None] * d
+            dq = torch.zeros_like(q).index_add(0, lay.si, -corr).index_add(0, lay.sj, corr)
+            q = q + w_inv * dq * inv_deg
+            if heldf is not None:
+                target = cps[jn] + h_off
+                q = q + heldf * (target - q) * (w_inv / (w_inv + a_grip))
+        if cps is not None:  # control points push free nodes out of their contact radius
+            dmin, jmin = torch.cdist(q, cps).min(dim=-1)
+            pen = (p.contact_radius - dmin).clamp_min(0.0)
+            if bool((pen > 0).any()):
+                dirn = (q - cps[jmin]) / dmin.clamp_min(1e-9)[:, None]
+                free = 1.0 - heldf if heldf is not None else 1.0
+                q = q + pen[:, None] * dirn * free
+        depth = (lay.floor - (q @ nrm + off)).clamp_min(0.0)  # [K] the table
+        if bool((depth > 0).any()):
+            q = q + depth[:, None] * nrm
+            dxt = q - x
+            dxt = dxt - (dxt @ nrm)[:, None] * nrm
+            st = dxt.norm(dim=-1).clamp_min(1e-12)
+            keepf = (1.0 - mu * depth / st).clamp_min(0.0)
+            q = q - dxt * ((1.0 - keepf) * (depth > 0).to(q.dtype))[:, None]
+        v = (q - x) / h
+        x = q
+    return x
+
+
+@register_effect("physics")
+class PhysicsPrior(Effect):
+    """The physics prior (module docstring). Needs the episode's initial splats
+    (``EffectContext.rest_positions``) and a per-episode cache (``EffectContext.cache``)."""
+
+    hosts_modifiers = True
+
+    @dataclass
+    class Params:
+        num_nodes: int = 48
+        neighbors: int = 8
+        spring_radius_factor: float = 3.0
+        bend_neighbors: int = 16
+        bend_radius_factor: float = 16.0
+        skin_neighbors: int = 4
+        substeps: int = 16
+        iterations: int = 20  # Jacobi constraint passes per substep
+        relaxation: float = 1.5
+        attach_radius: float = 0.02  # m around the control points' centroid
+        contact_radius: float = 0.006  # m around each control point
+        contact_offset_max: float = 0.02  # m: floors of the nodes resting on the table
+        grip_threshold: float = 0.5  # gripper state below it: closed
+        reach: float = 0.05  # m: a control point this close to a node disturbs the rest state
+        stretch_compliance: float = 1e-9  # s^2 per m of rest length (learnable)
+        bend_compliance: float = 1e-8
+        grip_compliance: float = 1e-7
+        damping: float = 1.0  # 1/s (learnable)
+        friction: float = 1.0  # the table's (learnable)
+        gain: float = 0.9  # fraction of the velocity change made per step (learnable, in (0, 1))
+
+    def __init__(self, params, *, attr_dim: int = 0) -> None:
+        super().__init__(params, attr_dim=attr_dim)
+        p = params
+        ints = ("num_nodes", "neighbors", "bend_neighbors", "skin_neighbors", "substeps", "iterations")
+        if p.num_nodes < 2 or p.neighbors < 1 or p.bend_neighbors < 0 or p.skin_neighbors < 1 or p.substeps < 1 \
+                or p.iterations < 1:
+            raise ConfigError(f"effect physics: {', '.join(ints)} must be >= 1 (bend_neighbors >= 0, num_nodes >= 2), got {p}")
+        for name in ("spring_radius_factor", "bend_radius_factor", "attach_radius", "contact_radius", "reach",
+                     "stretch_compliance", "bend_compliance", "grip_compliance", "damping"):
+            if not getattr(p, name) > 0:
+                raise ConfigError(f"effect physics: {name} must be > 0, got {getattr(p, name)}")
+        if not 0.0 < p.relaxation < 2.0 or not 0.0 < p.gain < 1.0 or not 0.0 < p.grip_threshold < 1.0:
+            raise ConfigError("effect physics: relaxation in (0, 2), gain and grip_threshold in (0, 1) required")
+        if not 0.0 <= p.friction < 5.0 or p.contact_offset_max < 0:
+            raise ConfigError("effect physics: friction in [0, 5) and contact_offset_max >= 0 required")
+        f = lambda v: nn.Parameter(torch.tensor(math.log(v)))  # noqa: E731
+        self.log_stretch, self.log_bend, self.log_grip = f(p.stretch_compliance), f(p.bend_compliance), f(p.grip_compliance)
+        self.log_damping = f(p.damping)
+        self.friction = nn.Parameter(torch.tensor(float(p.friction)))
+        self.gain_logit = nn.Parameter(torch.tensor(math.log(p.gain / (1.0 - p.gain))))
+
+    def robot_reach(self) -> float:
+        return float(self.params.reach)
+
+    def coefficients(self) -> dict[str, torch.Tensor]:
+        return {"stretch": self.log_stretch.exp(), "bend": self.log_bend.exp(), "grip": self.log_grip.exp(),
+                "damping": self.log_damping.exp(), "friction": self.friction}
+
+    def describe(self) -> dict[str, float]:
+        """The physical coefficients as plain numbers (reports)."""
+        out = {k: float(v.detach()) for k, v in self.coefficients().items()}
+        out["gain"] = float(torch.sigmoid(self.gain_logit.detach()))
+        return out
+
+    def layout(self, ctx: EffectContext) -> PhysicsLayout:
+        if ctx.rest_positions is None or ctx.cache is None:
+            raise RuntimeError("effect physics needs the episode's rest positions and cache (Simulator.effect_context)")
+        key = ("physics", id(self))
+        lay = ctx.cache.get(key)
+        if lay is None:
+            lay = build_layout(ctx.rest_positions, ctx.masses, ctx.plane_normal, ctx.plane_offset, self.params)
+            ctx.cache[key] = lay
+        return lay
+
+    def node_state(self, lay: PhysicsLayout, ctx: EffectContext) -> tuple[torch.Tensor, torch.Tensor]:
+        """Node positions and velocities [K, 3]: the mass-weighted means of their cells' splats."""
+        m = ctx.masses[:, None]
+        K = lay.num_nodes
+        x = ctx.positions.new_zeros(K, 3).index_add(0, lay.node_of, m * ctx.positions) / lay.node_mass[:, None]
+        v = ctx.positions.new_zeros(K, 3).index_add(0, lay.node_of, m * ctx.velocities) / lay.node_mass[:, None]
+        return x, v
+
+    def forward(self, ctx: EffectContext) -> torch.Tensor:
+        lay = self.layout(ctx)
+        mods = ctx.physics_mods or PhysicsMods()
+        x, v = self.node_state(lay, ctx)
+        cp1 = ctx.control_points
+        robot = cp1 is not None and cp1.shape[0] > 0
+        # within reach of a splat (as the trainer's contact frame measures it, trainer.train.rest_reach)
+        near = robot and bool(torch.cdist(cp1.detach(), ctx.positions.detach()).min() < self.params.reach)
+        if not near and not bool((v != 0).any()) and not mods.pushes():
+            return ctx.positions.new_zeros(ctx.positions.shape)  # at rest stays at rest, exactly
+        cp0 = None
+        closed = False
+        if robot:
+            cp0 = cp1 - float(ctx.dt) * ctx.control_velocities
+            closed = bool(float(ctx.gripper) < self.params.grip_threshold)
+        x1 = pbd_step(lay, x, v, ctx.gravity, ctx.plane_normal, ctx.plane_offset, float(ctx.dt), self.params,
+                      self.coefficients(), cp0 if robot else None, cp1 if robot else None, closed, mods)
+        dv = (x1 - x) / float(ctx.dt) - v  # [K, 3] velocity change of every node
+        acc = (lay.skin_w[..., None] * dv[lay.skin_idx]).sum(1) * (torch.sigmoid(self.gain_logit) / float(ctx.dt))
+        return ctx.masses[:, None] * acc

@@ -1,0 +1,221 @@
+"""The physics prior (effect ``physics``, soma_ros/core/physics.py) and the terms acting through it."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from soma_ros.core.config import ConfigError, EffectSpec, load_model_config
+from soma_ros.core.effects import EffectContext, build_effect, build_effects
+from soma_ros.core.physics import PhysicsMods, PhysicsPrior, build_layout, pbd_step
+from soma_ros.core.scenes import synthetic_rope
+from soma_ros.core.simulator import RobotAction, SceneContext, Simulator
+
+torch.set_num_threads(1)
+UP = torch.tensor([0.0, 0.0, 1.0])
+G = torch.tensor([0.0, 0.0, -9.81])
+DT = 1.0 / 30.0
+
+
+def _params(**kw) -> PhysicsPrior.Params:
+    return PhysicsPrior.Params(**{"num_nodes": 24, "substeps": 8, "iterations": 10, **kw})
+
+
+def _coef(p: PhysicsPrior.Params) -> dict:
+    return PhysicsPrior(p).coefficients()
+
+
+def _chain(n=240, length=0.3, top=0.5, seed=0):
+    """Splats of a vertical rope hanging from z = top down to top - length, table at z = 0."""
+    g = torch.Generator().manual_seed(seed)
+    z = top - torch.rand(n, generator=g) * length
+    pts = torch.stack([0.002 * torch.randn(n, generator=g), 0.002 * torch.randn(n, generator=g), z], dim=-1)
+    return pts, torch.full((n,), 0.04 / n)
+
+
+def _sheet(n=400, size=0.2, seed=0):
+    """Splats of a flat square cloth lying on the table (z = 0.002)."""
+    g = torch.Generator().manual_seed(seed)
+    xy = (torch.rand(n, 2, generator=g) - 0.5) * size
+    return torch.cat([xy, torch.full((n, 1), 0.002)], dim=-1), torch.full((n,), 0.06 / n)
+
+
+def _run(lay, p, x, steps, cp=None, closed=False, mods=None, cp_velocity=None, trajectory=False):
+    """Node positions after ``steps`` steps of the prior alone (velocities from the positions);
+    with ``trajectory`` every step's [steps, K, 3]."""
+    coef = _coef(p)
+    v = torch.zeros_like(x)
+    out = []
+    for _ in range(steps):
+        cp0 = cp
+        if cp is not None and cp_velocity is not None:
+            cp = cp + DT * cp_velocity
+        with torch.no_grad():
+            x1 = pbd_step(lay, x, v, G, UP, torch.tensor(0.0), DT, p, coef, cp0, cp, closed, mods)
+        v, x = (x1 - x) / DT, x1
+        out.append(x)
+    return torch.stack(out) if trajectory else x
+
+
+def _top_grip(lay):
+    """Control points at the chain's top node (two fingers 4 mm apart)."""
+    top = lay.rest[lay.rest[:, 2].argmax()]
+    return torch.stack([top + torch.tensor([0.0, 0.002, 0.0]), top - torch.tensor([0.0, 0.002, 0.0])])
+
+
+def test_a_held_rope_hangs_and_a_pressure_wind_swings_it_downwind():
+    p = _params()
+    pts, m = _chain()
+    lay = build_layout(pts, m, UP, torch.tensor(0.0), p)
+    cp = _top_grip(lay)
+    still = _run(lay, p, lay.rest.clone(), 30, cp, closed=True)
+    # held at the top, a vertical rope stays where it hangs: no node moves by more than 5 mm
+    assert float((still - lay.rest).norm(dim=-1).max()) < 5e-3
+    wind = PhysicsMods(pressure=torch.tensor([0.0, 4.0, 0.0]))
+    blown = _run(lay, p, lay.rest.clone(), 40, cp, closed=True, mods=wind, trajectory=True)
+    low = lay.rest[:, 2] < lay.rest[:, 2].min() + 0.05  # the free end
+    # it swings about a position downwind (a pendulum: the mean over a second, not one instant)
+    assert float(blown[10:, low, 1].mean()) > 0.02
+    top = lay.rest[:, 2].argmax()
+    assert float((blown[:, top] - lay.rest[top]).norm(dim=-1).max()) < 5e-3  # the grip holds the top
+    # released (gripper open), the rope falls onto the table and stops above it
+    dropped = _run(lay, p, lay.rest.clone(), 20, cp, closed=False)
+    assert float(dropped[:, 2].max()) < float(lay.rest[:, 2].max()) - 0.2
+    assert float(dropped[:, 2].min()) >= 0.0
+
+
+def test_a_flat_sheet_on_the_table_feels_no_horizontal_pressure_wind_and_a_uniform_field_is_held_by_friction():
+    p = _params()
+    pts, m = _sheet()
+    lay = build_layout(pts, m, UP, torch.tensor(0.0), p)
+    assert lay.sheet
+    x = lay.rest.clone()
+    v = torch.zeros_like(x)
+    coef = _coef(p)
+    with torch.no_grad():
+        wind = pbd_step(lay, x, v, G, UP, torch.tensor(0.0), DT, p, coef,
+                        mods=PhysicsMods(pressure=torch.tensor([5.0, 0.0, 0.0])))
+        push = pbd_step(lay, x, v, G, UP, torch.tensor(0.0), DT, p, coef,
+                        mods=PhysicsMods(accel=torch.tensor([5.0, 0.0, 0.0])))  # below mu |g| = 9.81
+        slide = pbd_step(lay, x, v, G, UP, torch.tensor(0.0), DT, p, coef,
+                         mods=PhysicsMods(accel=torch.tensor([5.0, 0.0, 0.0]), friction=torch.tensor(-0.9)))
+    assert float((wind - x).norm(dim=-1).max()) < 1e-6
+    assert float((push - x).norm(dim=-1).max()) < 1e-6
+    assert float((slide - x)[:, 0].mean()) > 1e-3  # a slippery table lets the same field slide it
+
+
+def test_modifiers_slip_stiffness_and_mass_change_the_held_rope_as_their_names_say():
+    p = _params()
+    pts, m = _chain()
+    lay = build_layout(pts, m, UP, torch.tensor(0.0), p)
+    cp = _top_grip(lay)
+    up = torch.tensor([0.0, 0.0, 0.3])  # the gripper rises at 0.3 m/s
+    ref = _run(lay, p, lay.rest.clone(), 20, cp, True, None, up)
+    loose = _run(lay, p, lay.rest.clone(), 20, cp, True, PhysicsMods(grip=torch.tensor(12.0)), up)
+    # a loosened grip lets the rope slide down through the fingers: it rises less
+    assert float(loose[:, 2].mean()) < float(ref[:, 2].mean()) - 0.01
+    # stiffness and mass scale the constraints against inertia: a chain stretched by 20 % in still
+    # space contracts towards its rest lengths faster when stiffer, slower when heavier (compliances
+    # large enough that they, not the number of passes, set the stiffness)
+    p = _params(bend_compliance=1e-4, stretch_compliance=1e-4)
+    lay = build_layout(pts, m, UP, torch.tensor(-10.0), p)  # the table far below
+    stretched = lay.rest * torch.tensor([1.0, 1.0, 1.2])
+    coef = _coef(p)
+
+    def strain(mods):
+        with torch.no_grad():
+            x = pbd_step(lay, stretched, torch.zeros_like(stretched), torch.zeros(3), UP, torch.tensor(-10.0), DT, p,
+                         coef, mods=mods)
+        d = (x[lay.sj] - x[lay.si]).norm(dim=-1)
+        return float(((d - lay.rest_len) / lay.rest_len).abs().mean())
+
+    s0 = strain(None)
+    assert strain(PhysicsMods(stiffness=torch.tensor(2.0))) < 0.9 * s0
+    assert strain(PhysicsMods(mass=torch.tensor(3.0))) > 1.1 * s0
+
+
+def _phys_sim(n=600, seed=0, **physics):
+    torch.manual_seed(seed)
+    cfg = load_model_config("cpu")
+    cfg.effects = [EffectSpec.parse(e) for e in (
+        "gravity", "support",
+        {"name": "physics", "direct": True, "feature": False, "num_nodes": 24, "substeps": 4, "iterations": 6, **physics})]
+    sim = Simulator(cfg).eval()
+    splats = synthetic_rope(n, seed=seed, center=(0.0, 0.0, 0.0))
+    return sim, splats
+
+
+def test_in_the_simulator_rest_stays_exactly_at_rest_and_a_grasp_lifts_the_near_end_first():
+    sim, splats = _phys_sim()
+    scene = SceneContext.table()
+    with torch.no_grad():
+        s0 = sim.init_state(splats, scene)
+        s = s0
+        far = RobotAction(torch.tensor([[1.0, 1.0, 0.5], [1.0, 1.01, 0.5]]), 0.0)  # a closed gripper far away
+        for a in [None] * 5 + [far] * 5:
+            s = sim.step(s, a)
+    assert torch.equal(s.means, s0.means)  # bit for bit
+    # the prior replaces the passive-object rule
+    sim.set_passive_friction(0.5)
+    assert sim.effects.physics_host == "physics"
+    # a gripper closed on one end of the rope lifts it 8 cm: that end follows, the other end lags
+    x0 = splats.means
+    end = x0[x0[:, 0].argmin()]
+    cp = torch.stack([end + torch.tensor([0.0, 0.004, 0.0]), end - torch.tensor([0.0, 0.004, 0.0])])
+    with torch.no_grad():
+        s = s0
+        for t in range(40):
+            lift = torch.tensor([0.0, 0.0, 0.08 * min(t, 30) / 30.0])
+            s = sim.step(s, RobotAction(cp + lift, 0.0))
+    x = s.means
+    near = (x0 - end).norm(dim=-1) < 0.03
+    far_end = (x0 - end).norm(dim=-1) > 0.35
+    assert float((x[near, 2] - x0[near, 2]).mean()) > 0.05
+    assert float((x[far_end, 2] - x0[far_end, 2]).mean()) < 0.5 * float((x[near, 2] - x0[near, 2]).mean())
+    assert torch.isfinite(x).all()
+
+
+def test_library_terms_act_through_the_prior_and_as_forces_without_it():
+    sim, splats = _phys_sim()
+    sim.add_effect({"name": "wind", "direct": True, "accel": [0.0, 3.0, 0.0]})
+    sim.add_effect({"name": "stiffness_scale", "direct": True})
+    with torch.no_grad():
+        s0 = sim.init_state(splats, SceneContext.table())
+        ctx = sim.effect_context(s0, None)
+        terms = sim.effects.per_term(ctx)
+    # through the prior: the wind exerts no force of its own ...
+    assert torch.equal(terms["wind"], torch.zeros_like(terms["wind"]))
+    assert torch.equal(terms["stiffness_scale"], torch.zeros_like(terms["wind"]))
+    # ... and a pressure wind on a rope lying across it, weaker than the table's friction, does not push it
+    # along the table (the prior runs: its nodes settle by micrometres)
+    f = terms["physics"]
+    weight = float((ctx.masses * 9.81).max())
+    assert float(f[:, :2].abs().max()) < 1e-6 * weight and float(f[:, 2].abs().max()) < 0.05 * weight
+    # without a prior the same term is a force field on every splat, as before
+    fx = build_effects([{"name": "wind", "accel": [0.0, 3.0, 0.0]}])
+    plain = fx.per_term(ctx)["wind"]
+    assert torch.allclose(plain, ctx.masses[:, None] * torch.tensor([0.0, 3.0, 0.0]))
+    # unknown solver and bad values are refused in one line
+    with pytest.raises(ConfigError, match="substeps"):
+        build_effect({"name": "physics", "substeps": 0})
+    with pytest.raises(ConfigError, match="gain"):
+        build_effect({"name": "physics", "gain": 1.0})
+    with pytest.raises(ConfigError, match="form"):
+        build_effect({"name": "wind", "form": "gust"})
+
+
+def test_gradients_reach_an_effect_term_through_the_prior():
+    sim, splats = _phys_sim(n=300)
+    sim.add_effect({"name": "wind", "direct": True, "form": "field"})
+    for p in sim.parameters():
+        p.requires_grad_(False)
+    sim.effects["wind"].accel.requires_grad_(True)
+    s = sim.init_state(splats, SceneContext.table())
+    x0 = splats.means
+    end = x0[x0[:, 0].argmin()]
+    cp = torch.stack([end + torch.tensor([0.0, 0.004, 0.0]), end - torch.tensor([0.0, 0.004, 0.0])])
+    for t in range(8):
+        s = sim.step(s, RobotAction(cp + torch.tensor([0.0, 0.0, 0.01 * t]), 0.0))
+    s.means[:, 1].mean().backward()
+    g = sim.effects["wind"].accel.grad
+    assert g is not None and torch.isfinite(g).all() and float(g[1]) > 0  # more +y wind, more +y drift
