@@ -105,7 +105,8 @@ __all__ = ["DiscrepancyConfig", "load_discrepancy_config", "run_discrepancy", "D
            "fit_effect", "residual_per_frame", "episode_residuals",
            "beyond_reference_tail"]
 
-DEFAULT_CANDIDATES = ["wind", "linear_drag", "quadratic_drag", "table_friction", "gripper_slip", "mass_scale"]
+DEFAULT_CANDIDATES = ["wind", "linear_drag", "quadratic_drag", "table_friction", "gripper_slip", "mass_scale",
+                      "stiffness_scale"]
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "config" / "discrepancy"
 
 
@@ -611,6 +612,13 @@ def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Seq
     for name in cfg.candidates:
         tc = time.time()
         rec: dict = {}
+        probe = copy.deepcopy(sim)
+        probe.add_effect({"name": name, "direct": bool(cfg.direct)})
+        if not probe.acting_parameters(name):  # e.g. stiffness_scale in a model without a physics prior
+            log(f"  candidate {name:15s} has no handle in this model (its parameters act only through a physics "
+                "prior): not tested")
+            continue
+        del probe
         if ref_obs:  # calibration on the model's own conditions
             calib, _, _ = fit_effect(sim, name, ref_obs, ref_scene, cfg, cfg.fit_iters, log)
             zero = [torch.zeros_like(p) for _, p in calib.acting_parameters(name)]

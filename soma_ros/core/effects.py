@@ -108,6 +108,8 @@ class EffectContext:
     gripper                []         gripper state c_t in [0, 1] (or None)
     rest_positions         [N, 3]     the episode's initial splat positions (or None)
     cache                  dict       per-episode constants an effect builds once (or None)
+    state_in / state_out   dict       what effects carried over from the previous step / carry
+                                      to the next one (``SimState.aux``), by effect key (or None)
     physics_mods           -          :class:`~.physics.PhysicsMods` the other terms ask of a
                                       physics prior (set by :class:`EffectSet`; or None)
     =====================  =========  =================================================
@@ -127,6 +129,8 @@ class EffectContext:
     rest_positions: Optional[torch.Tensor] = None
     cache: Optional[dict] = None
     physics_mods: Optional[object] = None
+    state_in: Optional[dict] = None
+    state_out: Optional[dict] = None
 
     def __post_init__(self) -> None:
         n = self.positions.shape[0]

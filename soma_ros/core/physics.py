@@ -26,11 +26,11 @@ Model (per step t -> t+1, stateless: everything is read from the simulator's sta
   ``contact_offset_max``, so nodes resting on the table stay where they were reconstructed);
   pushed below it is projected back and its tangential displacement is reduced by Coulomb
   friction ``mu x depth``.
-* **Gripper** (the action at t+1; control points move linearly from t within the step): while
-  the gripper is closed, the nodes within ``attach_radius`` of the control points' centroid
-  are held at their offset to their nearest control point (compliance ``grip_compliance``,
-  re-captured every step: a grip too weak for its load lets the object slide through, step by
-  step); free nodes are pushed out of ``contact_radius`` around every control point.
+* **Gripper** (the action at t+1; control points move linearly from t within the step): when
+  the gripper closes, the nodes within ``attach_radius`` of the control points' centroid are
+  grasped, each held at its offset to that centroid (compliance ``grip_compliance``)
+  until the gripper opens (:class:`Grasp`, carried in ``SimState.aux``); free nodes are pushed out
+  of ``contact_radius`` around every control point.
 * ``substeps`` per step. The nodes' displacement over the step gives a velocity change per
   node, carried to the splats by linear-blend skinning (``skin_neighbors`` nearest nodes); the
   term's force makes the fraction ``gain`` of it happen:
@@ -62,7 +62,7 @@ from .config import ConfigError
 from .effects import Effect, EffectContext, register_effect
 from .spring_mass import farthest_point_sampling, neighbour_pairs, skin_weights
 
-__all__ = ["PhysicsMods", "PhysicsLayout", "PhysicsPrior", "build_layout", "pbd_step"]
+__all__ = ["PhysicsMods", "PhysicsLayout", "PhysicsPrior", "Grasp", "build_layout", "grasp_nodes", "pbd_step"]
 
 
 @dataclass
@@ -75,7 +75,7 @@ class PhysicsMods:
     linear_drag: Optional[torch.Tensor] = None  # 1/s
     quadratic_drag: Optional[torch.Tensor] = None  # 1/m
     friction: Optional[torch.Tensor] = None  # added to the table's mu
-    grip: Optional[torch.Tensor] = None  # grip compliance x exp(grip)
+    grip: Optional[torch.Tensor] = None  # loosened grip: its compliance x exp(3 grip), and the held material slides
     mass: Optional[torch.Tensor] = None  # the object is (1 + mass) times heavier (> -0.9)
     stiffness: Optional[torch.Tensor] = None  # stretch and bending compliances / exp(stiffness)
 
@@ -113,6 +113,16 @@ class PhysicsLayout:
     @property
     def num_nodes(self) -> int:
         return int(self.rest.shape[0])
+
+
+@dataclass
+class Grasp:
+    """The nodes the closed fingers hold: ``held`` [K] bool and ``offset`` [K, 3] where each is held
+    relative to the control points' centroid (the fingers closing further about it do not move
+    it). Carried from step to step in ``SimState.aux`` while the gripper stays closed."""
+
+    held: torch.Tensor
+    offset: torch.Tensor
 
 
 def _is_sheet(rest: torch.Tensor) -> bool:
@@ -184,15 +194,29 @@ def _pressure(lay: PhysicsLayout, x: torch.Tensor, w: torch.Tensor) -> torch.Ten
     return w[None, :] - (t @ w)[:, None] * t
 
 
+def grasp_nodes(lay: PhysicsLayout, x: torch.Tensor, cp: torch.Tensor, p: "PhysicsPrior.Params") -> Optional[Grasp]:
+    """The grasp a gripper closing now makes: the nodes within ``attach_radius`` of the control
+    points' centroid, each held at its offset to it (None: nothing there)."""
+    centre = cp.mean(dim=0)
+    held = (x.detach() - centre).norm(dim=-1) <= p.attach_radius  # [K]
+    if not bool(held.any()):
+        return None
+    return Grasp(held, (x - centre).detach())
+
+
 def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torch.Tensor, plane_normal: torch.Tensor,
              plane_offset: torch.Tensor, dt: float, p: "PhysicsPrior.Params", coef: dict[str, torch.Tensor],
-             cp0: Optional[torch.Tensor] = None, cp1: Optional[torch.Tensor] = None, closed: bool = False,
-             mods: Optional[PhysicsMods] = None) -> torch.Tensor:
-    """Node positions [K, 3] after one step of ``dt`` from positions x and velocities v [K, 3].
+             cp0: Optional[torch.Tensor] = None, cp1: Optional[torch.Tensor] = None, grasp: Optional[Grasp] = None,
+             mods: Optional[PhysicsMods] = None) -> tuple[torch.Tensor, Optional[Grasp]]:
+    """(Node positions [K, 3] after one step of ``dt`` from positions x and velocities v [K, 3], the
+    grasp after it).
 
     ``coef``: the learnable coefficients as tensors (``stretch``, ``bend``, ``grip`` compliances,
     ``damping``, ``friction``); ``cp0`` / ``cp1`` [P, 3]: the control points at t and t+1 (None:
-    no robot); ``closed``: the gripper holds. Differentiable in x, v, coef and mods."""
+    no robot); ``grasp``: the nodes the closed fingers hold (:func:`grasp_nodes`; None: none). A
+    loosened grip (``mods.grip`` = g > 0: its compliance x e^(3 g)) lets the held material slide: each held
+    offset moves the fraction ``1 - exp(-(e^(3 g) - 1) / 1000)`` of the way to where the node ended up. Differentiable in
+    x, v, coef, mods and the grasp's offsets."""
     mods = mods or PhysicsMods()
     K = x.shape[0]
     h = float(dt) / p.substeps
@@ -204,7 +228,7 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
     w_inv = 1.0 / (1.0 + mods.mass.clamp_min(-0.9)) if mods.mass is not None else x.new_ones(())  # per unit mass
     a_grip = coef["grip"] / h2
     if mods.grip is not None:
-        a_grip = a_grip * torch.exp(mods.grip)
+        a_grip = a_grip * torch.exp(3.0 * mods.grip)
     damp = torch.exp(-coef["damping"] * h)
     mu = coef["friction"].clamp_min(0.0)
     if mods.friction is not None:
@@ -215,16 +239,9 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
     nrm = plane_normal.to(x.dtype)
     off = plane_offset.to(x.dtype)
     inv_deg = (p.relaxation / lay.degree.clamp_min(1.0))[:, None]
-    held = None
-    if cp0 is not None and closed:
-        centre = cp0.mean(dim=0)
-        held = (x.detach() - centre).norm(dim=-1) <= p.attach_radius  # [K]
-        if bool(held.any()):
-            jn = torch.cdist(x.detach(), cp0).argmin(dim=-1)  # [K]
-            h_off = x - cp0[jn]
-        else:
-            held = None
-    heldf = held.to(x.dtype)[:, None] if held is not None else None
+    if grasp is not None and cp0 is None:
+        raise ValueError("pbd_step: a grasp needs the control points")
+    heldf = grasp.held.to(x.dtype)[:, None] if grasp is not None else None
     for s in range(p.substeps):
         cps = None if cp0 is None else cp0 + ((s + 1) / p.substeps) * (cp1 - cp0)
         acc = acc0
@@ -244,7 +261,7 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
             dq = torch.zeros_like(q).index_add(0, lay.si, -corr).index_add(0, lay.sj, corr)
             q = q + w_inv * dq * inv_deg
             if heldf is not None:
-                target = cps[jn] + h_off
+                target = cps.mean(dim=0) + grasp.offset
                 q = q + heldf * (target - q) * (w_inv / (w_inv + a_grip))
         if cps is not None:  # control points push free nodes out of their contact radius
             dmin, jmin = torch.cdist(q, cps).min(dim=-1)
@@ -263,7 +280,10 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
             q = q - dxt * ((1.0 - keepf) * (depth > 0).to(q.dtype))[:, None]
         v = (q - x) / h
         x = q
-    return x
+    if grasp is not None and mods.grip is not None:  # the loosened grip's material slides through the fingers
+        slip = (1.0 - torch.exp(-(torch.exp(3.0 * mods.grip) - 1.0) / 1000.0)).clamp_min(0.0)
+        grasp = Grasp(grasp.held, grasp.offset + slip * ((x - cp1.mean(dim=0)) - grasp.offset))
+    return x, grasp
 
 
 @register_effect("physics")
@@ -282,7 +302,7 @@ class PhysicsPrior(Effect):
         bend_radius_factor: float = 16.0
         skin_neighbors: int = 4
         substeps: int = 16
-        iterations: int = 20  # Jacobi constraint passes per substep
+        iterations: int = 10  # Jacobi constraint passes per substep
         relaxation: float = 1.5
         attach_radius: float = 0.02  # m around the control points' centroid
         contact_radius: float = 0.006  # m around each control point
@@ -358,13 +378,15 @@ class PhysicsPrior(Effect):
         near = robot and bool(torch.cdist(cp1.detach(), ctx.positions.detach()).min() < self.params.reach)
         if not near and not bool((v != 0).any()) and not mods.pushes():
             return ctx.positions.new_zeros(ctx.positions.shape)  # at rest stays at rest, exactly
-        cp0 = None
-        closed = False
+        cp0 = grasp = None
         if robot:
             cp0 = cp1 - float(ctx.dt) * ctx.control_velocities
-            closed = bool(float(ctx.gripper) < self.params.grip_threshold)
-        x1 = pbd_step(lay, x, v, ctx.gravity, ctx.plane_normal, ctx.plane_offset, float(ctx.dt), self.params,
-                      self.coefficients(), cp0 if robot else None, cp1 if robot else None, closed, mods)
+            if float(ctx.gripper) < self.params.grip_threshold:  # closed: keep the grasp made when it closed
+                grasp = (ctx.state_in or {}).get(self.name) or grasp_nodes(lay, x, cp0, self.params)
+        x1, grasp = pbd_step(lay, x, v, ctx.gravity, ctx.plane_normal, ctx.plane_offset, float(ctx.dt), self.params,
+                             self.coefficients(), cp0, cp1 if robot else None, grasp, mods)
+        if grasp is not None and ctx.state_out is not None:
+            ctx.state_out[self.name] = grasp
         dv = (x1 - x) / float(ctx.dt) - v  # [K, 3] velocity change of every node
         acc = (lay.skin_w[..., None] * dv[lay.skin_idx]).sum(1) * (torch.sigmoid(self.gain_logit) / float(ctx.dt))
         return ctx.masses[:, None] * acc

@@ -282,6 +282,9 @@ class SimState:
     control_points: Optional[torch.Tensor] = None
     dyn_edges: list[Optional[torch.Tensor]] = field(default_factory=list)
     dyn_step: list[int] = field(default_factory=list)
+    #: what effects carry from one step to the next, by effect key (``EffectContext.state_in`` /
+    #: ``state_out``; e.g. the physics prior's grasp: which nodes the fingers hold, at which offsets)
+    aux: dict = field(default_factory=dict)
 
     @property
     def num_levels(self) -> int:
@@ -300,8 +303,10 @@ class SimState:
         def d(v):
             if isinstance(v, torch.Tensor):
                 return v.detach()
-            if isinstance(v, list):
-                return [d(x) for x in v]
+            if isinstance(v, (list, tuple)):
+                return type(v)(d(x) for x in v)
+            if isinstance(v, dict):
+                return {k: d(x) for k, x in v.items()}
             return v
 
         ep = self.episode
@@ -625,6 +630,7 @@ class Simulator(nn.Module):
             positions=x, velocities=v, masses=ep.masses[0], attrs=ep.attrs[0], gravity=ep.scene.gravity,
             plane_normal=ep.scene.plane_normal, plane_offset=ep.scene.plane_offset, dt=dt,
             control_points=cp, control_velocities=cpv, gripper=grip, rest_positions=ep.rest[0], cache=ep.cache,
+            state_in=state.aux, state_out={},
         )
 
     def forces(self, state: SimState, action: Optional[RobotAction], reference_only: bool = False) -> torch.Tensor:
@@ -648,9 +654,10 @@ class Simulator(nn.Module):
         exempt = dyn.passive_exempt
         if exempt and dyn.passive_exempt_closed and (action is None or action.is_open):
             exempt = []  # an open gripper's coupling drags, it does not carry: the step stays passive
-        f, f_direct, acting = self.effects.split_active(self.effect_context(state, action), check_active=passive_rule,
-                                                        exempt=exempt)
+        ctx = self.effect_context(state, action)
+        f, f_direct, acting = self.effects.split_active(ctx, check_active=passive_rule, exempt=exempt)
         nxt, _ = self._advance(state, action, f, state.episode.reference, f_direct, passive=acting if passive_rule else 2)
+        nxt.aux = ctx.state_out  # what the effects carry to the next step
         return nxt
 
     forward = step
