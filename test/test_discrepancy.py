@@ -277,6 +277,18 @@ def test_candidates_are_fitted_as_direct_effects_and_recover_a_hidden_wind():
     assert float(residual_per_frame(model, ob, scene).mean()) < 0.3 * float(residual_per_frame(sim, ob, scene).mean())
     feat_cfg = load_discrepancy_config("fast", {"direct": False, "fit_iters": 1})
     assert fit_effect(sim, "wind", [ob], scene, feat_cfg, 1, log=lambda *a: None)[0].effects.direct_keys == []
+    # a start on a coarse grid (multiples of the term's typical magnitude, here |g|) finds a field Adam's few
+    # small steps from 0 do not reach: the world's wind is 9.81 m/s^2 now
+    world.effects["wind"].accel.data = torch.tensor([0.0, 9.81, 0.0])
+    with torch.no_grad():
+        ob.points = [st.means[::4].clone() for _, st in _rollout(world, ob, scene, frames)]
+    few = load_discrepancy_config("fast", {"fit_iters": 2, "fit_lr": 0.01})
+    plain = fit_effect(sim, "wind", [ob], scene, few, 2, log=lambda *a: None)[2]
+    grid = load_discrepancy_config("fast", {"fit_iters": 2, "fit_lr": 0.01, "grid_start": [-2, -1, 1, 2]})
+    gridded = fit_effect(sim, "wind", [ob], scene, grid, 2, log=lambda *a: None)[2]
+    assert abs(plain["accel"][1]) < 1.0 and abs(gridded["accel"][1] - 9.81) < 0.5, (plain, gridded)
+    with pytest.raises(ValueError, match="grid_episodes"):
+        load_discrepancy_config("fast", {"grid_episodes": 0})
 
 
 # ----------------------------------------------------------------------------- end to end

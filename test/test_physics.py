@@ -142,7 +142,8 @@ def _phys_sim(n=600, seed=0, **physics):
     cfg = load_model_config("cpu")
     cfg.effects = [EffectSpec.parse(e) for e in (
         "gravity", "support",
-        {"name": "physics", "direct": True, "feature": False, "num_nodes": 24, "substeps": 4, "iterations": 6, **physics})]
+        {"name": "physics", "direct": True, "feature": False, "num_nodes": 24, "substeps": 4, "iterations": 6,
+         **physics})]
     sim = Simulator(cfg).eval()
     splats = synthetic_rope(n, seed=seed, center=(0.0, 0.0, 0.0))
     return sim, splats

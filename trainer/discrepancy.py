@@ -135,6 +135,11 @@ class DiscrepancyConfig:
     alpha: float = 0.05  # one-sided: the lower bound is the alpha quantile
     min_explained: float = 0.1
     finetune_iters: int = 0  # extra Adam steps on the winner's parameters over the fit episodes
+    grid_start: list[float] = field(default_factory=list)  # before Adam: try the start value plus these
+    # multiples of each parameter's typical magnitude (Effect.fit_scale), one parameter element at a time,
+    # and start from the best on grid_episodes fit episodes (a response that stays flat until a threshold,
+    # e.g. a grip that holds until it slips, gives Adam no gradient to follow from 0); empty = off
+    grid_episodes: int = 4
     direct: bool = True  # candidates are added as direct effects (explicitly integrated force); False: feature only
     reference_data: Optional[str] = None  # the own-error control (rank_candidates): episodes of the conditions the
     # model was trained in that it was not trained on; None: the checkpoint's training dataset, its non-train
@@ -159,6 +164,8 @@ class DiscrepancyConfig:
             raise ValueError(f"discrepancy: line_search scales must be > 0, got {self.line_search}")
         if not (0 < self.alpha < 0.5) or not (self.fit_lr > 0) or not (0 < self.fit_lr_final <= 1):
             raise ValueError("discrepancy: alpha in (0, 0.5), fit_lr > 0 and fit_lr_final in (0, 1] required")
+        if self.grid_episodes < 1 or any(not math.isfinite(float(k)) for k in self.grid_start):
+            raise ValueError("discrepancy: grid_episodes >= 1 and finite grid_start multiples required")
         return self
 
 
@@ -506,6 +513,8 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
         p.requires_grad_(True)
     model.eval()
     losses: list[float] = []
+    if params and iters > 0 and fit_obs and cfg.grid_start:
+        _grid_start(model, key, fit_obs, scene, cfg, log)
     if params and iters > 0 and fit_obs:
         scale = getattr(model.effects[key], "fit_scale", {}) or {}
         groups = [{"params": [p], "lr": cfg.fit_lr * float(scale.get(n, 1.0))} for n, p in named]
@@ -544,6 +553,33 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
     for p in params:
         p.requires_grad_(False)
     return model, losses, _values(model, key)
+
+
+@torch.no_grad()
+def _grid_start(model: Simulator, key: str, fit_obs: Sequence[EpisodeObs], scene: SceneContext,
+                cfg: DiscrepancyConfig, log: Callable[[str], None]) -> None:
+    """Move effect ``key``'s acting parameters to the best start on a coarse grid
+    (``cfg.grid_start``: multiples of each parameter's ``Effect.fit_scale``, one element at a time,
+    the others at their values; the current value always counts), scored by the 3D residual sum
+    on ``cfg.grid_episodes`` evenly spaced fit episodes. Greedy, one element after another."""
+    n = min(len(fit_obs), max(1, cfg.grid_episodes))
+    sub = [fit_obs[int(i)] for i in np.round(np.linspace(0, len(fit_obs) - 1, n)).astype(int)]
+    score = lambda: float(sum(residual_per_frame(model, o, scene).sum() for o in sub))  # noqa: E731
+    best = score()
+    scale = getattr(model.effects[key], "fit_scale", {}) or {}
+    named = model.acting_parameters(key)
+    for name, p in named:
+        flat = p.view(-1)
+        for i in range(flat.numel()):
+            start = float(flat[i])
+            best_v = start
+            for k in cfg.grid_start:
+                flat[i] = start + float(k) * float(scale.get(name, 1.0))
+                r = score()
+                if r < best:
+                    best, best_v = r, float(flat[i])
+            flat[i] = best_v
+    log(f"    grid start: {', '.join(f'{n_}={p.detach().reshape(-1).tolist()}' for n_, p in named)}")
 
 
 def _line_search(model: Simulator, name: str, theta0: list[torch.Tensor], obs: Sequence[EpisodeObs],

@@ -164,7 +164,8 @@ def build_layout(rest_splats: torch.Tensor, masses: torch.Tensor, plane_normal: 
         ks = set((stretch[0] * K + stretch[1]).tolist())
         bend = bend[:, torch.tensor([int(a) * K + int(b) not in ks for a, b in bend.t()], dtype=torch.bool)]
     pairs = torch.cat([stretch, bend], dim=1).to(dev)
-    is_bend = torch.cat([torch.zeros(stretch.shape[1], dtype=torch.bool), torch.ones(bend.shape[1], dtype=torch.bool)]).to(dev)
+    is_bend = torch.cat([torch.zeros(stretch.shape[1], dtype=torch.bool),
+                         torch.ones(bend.shape[1], dtype=torch.bool)]).to(dev)
     rest_len = (rest[pairs[0]] - rest[pairs[1]]).norm(dim=-1).clamp_min(1e-6)
     degree = torch.bincount(pairs.reshape(-1), minlength=K).to(dt_)
     nrm = plane_normal.detach().to(dt_)
@@ -214,11 +215,10 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
     ``coef``: the learnable coefficients as tensors (``stretch``, ``bend``, ``grip`` compliances,
     ``damping``, ``friction``); ``cp0`` / ``cp1`` [P, 3]: the control points at t and t+1 (None:
     no robot); ``grasp``: the nodes the closed fingers hold (:func:`grasp_nodes`; None: none). A
-    loosened grip (``mods.grip`` = g > 0: its compliance x e^(3 g)) lets the held material slide: each held
-    offset moves the fraction ``1 - exp(-(e^(3 g) - 1) / 1000)`` of the way to where the node ended up. Differentiable in
-    x, v, coef, mods and the grasp's offsets."""
+    loosened grip (``mods.grip`` = g > 0: its compliance x e^(3 g)) lets the held material slide:
+    each held offset moves the fraction ``1 - exp(-(e^(3 g) - 1) / 1000)`` of the way to where the
+    node ended up. Differentiable in x, v, coef, mods and the grasp's offsets."""
     mods = mods or PhysicsMods()
-    K = x.shape[0]
     h = float(dt) / p.substeps
     h2 = h * h
     stiff = torch.exp(mods.stiffness) if mods.stiffness is not None else None
@@ -308,7 +308,7 @@ class PhysicsPrior(Effect):
         contact_radius: float = 0.006  # m around each control point
         contact_offset_max: float = 0.02  # m: floors of the nodes resting on the table
         grip_threshold: float = 0.5  # gripper state below it: closed
-        reach: float = 0.05  # m: a control point this close to a node disturbs the rest state
+        reach: float = 0.05  # m: a control point this close to a splat disturbs the rest state
         stretch_compliance: float = 1e-9  # s^2 per m of rest length (learnable)
         bend_compliance: float = 1e-8
         grip_compliance: float = 1e-7
@@ -322,7 +322,8 @@ class PhysicsPrior(Effect):
         ints = ("num_nodes", "neighbors", "bend_neighbors", "skin_neighbors", "substeps", "iterations")
         if p.num_nodes < 2 or p.neighbors < 1 or p.bend_neighbors < 0 or p.skin_neighbors < 1 or p.substeps < 1 \
                 or p.iterations < 1:
-            raise ConfigError(f"effect physics: {', '.join(ints)} must be >= 1 (bend_neighbors >= 0, num_nodes >= 2), got {p}")
+            raise ConfigError(f"effect physics: {', '.join(ints)} must be >= 1 (bend_neighbors >= 0, "
+                              f"num_nodes >= 2), got {p}")
         for name in ("spring_radius_factor", "bend_radius_factor", "attach_radius", "contact_radius", "reach",
                      "stretch_compliance", "bend_compliance", "grip_compliance", "damping"):
             if not getattr(p, name) > 0:
@@ -332,7 +333,8 @@ class PhysicsPrior(Effect):
         if not 0.0 <= p.friction < 5.0 or p.contact_offset_max < 0:
             raise ConfigError("effect physics: friction in [0, 5) and contact_offset_max >= 0 required")
         f = lambda v: nn.Parameter(torch.tensor(math.log(v)))  # noqa: E731
-        self.log_stretch, self.log_bend, self.log_grip = f(p.stretch_compliance), f(p.bend_compliance), f(p.grip_compliance)
+        self.log_stretch, self.log_bend = f(p.stretch_compliance), f(p.bend_compliance)
+        self.log_grip = f(p.grip_compliance)
         self.log_damping = f(p.damping)
         self.friction = nn.Parameter(torch.tensor(float(p.friction)))
         self.gain_logit = nn.Parameter(torch.tensor(math.log(p.gain / (1.0 - p.gain))))
