@@ -24,7 +24,10 @@ whatever the simulation shows there, however far the miss, just as for a frozen 
 effect that leaves the object in the same height range can raise the model's depth RMSE to about
 the frozen object's and no further; where frozen / floor is under 2, no such effect can be halved
 on depth RMSE. (Chamfer has no such ceiling: an object blown off the table costs metres.)
-For information it also prints the same ratios for the depth RMSE over the union of the measured
+It also scores the *ground truth's motion* (:func:`ground_truth_motion`, evaluation only): the
+splats moved with the world's own vertices, the floor that the reconstruction and the renderer
+set whatever the dynamics; a model cannot go below it, so before / oracle bounds what any term
+could give. For information it also prints the same ratios for the depth RMSE over the union of the measured
 and the simulated object's pixels (``rmse_union``, JSON ``union``), which also charges a simulated
 object where the camera sees the table; it is not the acceptance's metric.
 
@@ -62,10 +65,41 @@ def headroom(before: dict, floor: dict, metrics: Sequence[str] = METRICS) -> dic
     return out
 
 
+def ground_truth_motion():
+    """EVALUATION ONLY (it reads the world's ground-truth topic, which no model or workflow may): a
+    rollout model that moves every splat with its 3 nearest ground-truth vertices (inverse-square
+    distance weights, translation only, fixed at frame 0). Its scores are what a model whose 3D
+    motion were exact would get with this scene's splats: the floor the reconstruction and the
+    renderer set, under any dynamics."""
+    import torch
+
+    from trainer.baselines import RolloutModel
+    from trainer.evaluate_gt import read_ground_truth_points
+
+    class GroundTruthMotion(RolloutModel):
+        kind = "ground_truth_motion"
+
+        def __init__(self) -> None:
+            self.bags: dict = {}
+
+        def rollout(self, ep, init, scene):
+            gt = torch.from_numpy(read_ground_truth_points(self.bags[ep.name],
+                                                           stamps_ns=[int(t) for t in ep.stamps_ns.tolist()])).float()
+            m0, c0 = init.means.detach().float(), init.covariances().detach().float()
+            d, j = torch.cdist(m0, gt[0]).topk(min(3, gt.shape[1]), largest=False)
+            w = 1.0 / (d + 1e-3).square()
+            w = w / w.sum(dim=1, keepdim=True)
+            for t in range(ep.num_frames):
+                yield m0 + (w[..., None] * (gt[t][j] - gt[0][j])).sum(1), c0
+
+    return GroundTruthMotion()
+
+
 def evaluate_unchanged(run: Path, data: Path, cfg, out: Optional[Path], log=print, frozen: bool = False) -> dict:
     """The unchanged model's metrics on the workflow's held-out episodes of ``data`` (metrics.json form);
     with ``frozen`` also, under key "frozen", those of a frozen object (:class:`trainer.baselines.StaticModel`:
-    the first frame's splats, never moved), scored in the same pass on the same episodes, frames and protocol."""
+    the first frame's splats, never moved) and under key "oracle" those of the ground truth's motion
+    (:func:`ground_truth_motion`), scored in the same pass on the same episodes, frames and protocol."""
     from trainer.baselines import SimulatorModel, StaticModel
     from trainer.config import load_train_config
     from trainer.discrepancy import HELDOUT, load_model, mark_heldout
@@ -77,14 +111,17 @@ def evaluate_unchanged(run: Path, data: Path, cfg, out: Optional[Path], log=prin
     models = {"before": SimulatorModel(load_model(run / "checkpoint.pt", cfg))}
     if frozen:
         models["frozen"] = StaticModel()
+        models["oracle"] = ground_truth_motion()
+        models["oracle"].bags = {r.name: r.bag for r in ctx.refs}
     ecfg = EvalConfig(metrics=EvalMetricsConfig(with_lpips=False), frame_stride=cfg.eval_frame_stride,
                       contact_sheets=False, progress=False)
     with tempfile.TemporaryDirectory() as tmp:
-        folders = {"before": out if out is not None else Path(tmp) / "before", "frozen": Path(tmp) / "frozen"}
+        folders = {"before": out if out is not None else Path(tmp) / "before", "frozen": Path(tmp) / "frozen",
+                   "oracle": Path(tmp) / "oracle"}
         every = evaluate_models(models, ctx, HELDOUT, {k: folders[k] for k in models}, ecfg, log=lambda *a: None)
     res = every["before"]
     if frozen:
-        res["frozen"] = every["frozen"]
+        res["frozen"], res["oracle"] = every["frozen"], every["oracle"]
     res["tasks"] = {r.name: r.task for r in ctx.refs if r.split == HELDOUT}
     return res
 
@@ -140,6 +177,7 @@ def main(argv=None) -> int:
     t0 = time.time()
     floor = evaluate_unchanged(run, Path(args.none), cfg, sub(Path(args.none)), frozen=True)
     frozen = floor.pop("frozen")
+    oracle = floor.pop("oracle")
     print(f"run {run}; floor = unchanged model on {args.none} ({len(floor['tasks'])} held-out episodes, "
           f"{time.time() - t0:.0f} s): depth RMSE {_fmt(floor['mean']['rmse'])} m, "
           f"Chamfer {_fmt(floor['mean']['chamfer'])} m", flush=True)
@@ -149,6 +187,10 @@ def main(argv=None) -> int:
           f"({_fmt(span['rmse'], 2)}x the floor), Chamfer {_fmt(frozen['mean']['chamfer'])} m "
           f"({_fmt(span['chamfer'], 2)}x); union depth RMSE {_fmt(floor['mean'].get(UNION))} m (floor), "
           f"{_fmt(frozen['mean'].get(UNION))} m ({_fmt(span_u, 2)}x)", flush=True)
+    below = headroom(oracle["mean"], floor["mean"])
+    print(f"ground-truth motion on {args.none} (splats moved with the world's vertices: exact dynamics): depth RMSE "
+          f"{_fmt(oracle['mean']['rmse'])} m ({_fmt(below['rmse'], 2)}x the floor), Chamfer "
+          f"{_fmt(oracle['mean']['chamfer'])} m ({_fmt(below['chamfer'], 2)}x)", flush=True)
     rows = {}
     for d in datasets:
         t1 = time.time()
@@ -169,6 +211,7 @@ def main(argv=None) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps({"run": str(run), "none": str(args.none), "floor": floor["mean"],
                                                "frozen": {"metrics": frozen["mean"], "vs_floor": span},
+                                               "oracle": {"metrics": oracle["mean"], "vs_floor": below},
                                                "datasets": rows}, indent=1))
     return 0
 

@@ -501,6 +501,9 @@ def test_headroom_cli_scores_the_workflow_heldout_episodes(clean_run, tmp_path, 
         assert math.isfinite(frozen["metrics"][m]) and frozen["metrics"][m] > 0
         assert frozen["vs_floor"][m] == pytest.approx(frozen["metrics"][m] / floor[m])
     assert frozen["metrics"]["chamfer"] != floor["chamfer"]  # the model moves the object, a frozen one does not
+    oracle = json.loads(out.read_text())["oracle"]  # the splats moved with the world's vertices: the lowest 3D error
+    assert 0 < oracle["metrics"]["chamfer"] < min(frozen["metrics"]["chamfer"], floor["chamfer"])
+    assert oracle["vs_floor"]["rmse"] == pytest.approx(oracle["metrics"]["rmse"] / floor["rmse"])
     refs = EvalContext(data, load_train_config(root / "run" / "train_config.yaml"), root / "run" / "scene").refs
     assert sorted(rep["episodes"]) == sorted(heldout_names(refs, load_discrepancy_config("fast")))
     other = tmp_path / "other_seed"
