@@ -540,3 +540,25 @@ def test_load_model_exempts_the_trained_terms_by_default(clean_run):
     back = load_checkpoint(root / "posthoc.pt")
     assert back.trained_terms() == ["robot", "wind"] and "gripper_slip" in back.effects
     assert [s.to_yaml_dict().get("fitted_after_training") for s in back.effects.specs] == [None, None, None, None, True]
+
+
+def test_terms_cli_scores_hand_set_terms_on_the_heldout_episodes(clean_run, tmp_path, capsys):
+    """A term at zero leaves the unchanged model's scores exactly; a strong field moves the rope and
+    changes them; malformed variants are refused with a clear error."""
+    from benchmarks.discrepancy_terms import main
+
+    root, data = clean_run
+    out = tmp_path / "t.json"
+    variants = {"zero": [{"name": "wind", "accel": [0.0, 0.0, 0.0]}],
+                "gale": [{"name": "wind", "accel": [0.0, 40.0, 0.0]}]}
+    args = ["--run", str(root / "run"), "--data", str(data), "--config", "fast", "--json", str(out)]
+    assert main(args + ["--variants", json.dumps(variants)]) == 0
+    res = json.loads(out.read_text())
+    assert set(res) == {"unchanged", "zero", "gale"}
+    assert res["zero"] == res["unchanged"]
+    assert res["gale"]["chamfer"] > 1.5 * res["unchanged"]["chamfer"]
+    assert "held-out episodes" in capsys.readouterr().out
+    assert main(args + ["--variants", "{not json"]) == 2
+    assert main(args + ["--variants", '{"a": [{"accel": 1}]}']) == 2
+    assert main(args + ["--variants", '{"unchanged": []}']) == 2
+    assert "error" in capsys.readouterr().err

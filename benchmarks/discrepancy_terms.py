@@ -1,0 +1,100 @@
+"""Score a trained model with given effect terms added, on the discrepancy workflow's held-out episodes.
+
+    python -m benchmarks.discrepancy_terms --run RUN --data MEASURED --config physics \
+        --variants '{"loosen 3": [{"name": "gripper_slip", "loosen": 3.0}]}'
+
+Each variant (a name -> a list of effect specs, as ``Simulator.add_effect`` takes them; ``direct``
+defaults to the workflow config's) is the unchanged model of ``RUN`` with those terms added by hand,
+rolled out open loop on the held-out episodes the workflow would score (same split, frames and
+protocol as ``soma discrepancy``'s before / after), and its depth RMSE and Chamfer are printed with the
+unchanged model's. It answers "what would the gap be if the workflow had found this term at this
+value": the best a candidate can do at all, independent of the fit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+UNCHANGED = "unchanged"
+
+
+def parse_variants(text: str) -> dict[str, list[dict]]:
+    """``'{"name": [spec, ...], ...}'`` -> the dict, checked: every spec a dict with a ``name``."""
+    try:
+        variants = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"--variants is not JSON: {e}") from None
+    if not isinstance(variants, dict) or not variants:
+        raise ValueError("--variants must be a non-empty JSON object {name: [effect spec, ...]}")
+    for name, specs in variants.items():
+        if name == UNCHANGED:
+            raise ValueError(f"variant name {UNCHANGED!r} is reserved for the model as trained")
+        if not isinstance(specs, list) or not all(isinstance(s, dict) and "name" in s for s in specs):
+            raise ValueError(f"variant {name!r}: expected a list of effect specs with a 'name', got {specs!r}")
+    return variants
+
+
+def score_variants(run: Path, data: Path, variants: dict[str, list[dict]], config: str = "default") -> dict:
+    """{variant: evaluate_models' result} on the workflow's held-out episodes of ``data``; the model as
+    trained under ``"unchanged"``."""
+    from trainer.baselines import SimulatorModel
+    from trainer.config import load_train_config
+    from trainer.discrepancy import HELDOUT, load_discrepancy_config, load_model, mark_heldout
+    from trainer.evaluate import EvalConfig, EvalContext, evaluate_models
+    from trainer.evaluate_metrics import EvalMetricsConfig
+
+    cfg = load_discrepancy_config(config)
+    ctx = EvalContext(data, load_train_config(run / "train_config.yaml"), run / "scene")
+    mark_heldout(ctx, cfg)
+    base = load_model(run / "checkpoint.pt", cfg)
+    models = {UNCHANGED: SimulatorModel(base)}
+    for name, specs in variants.items():
+        sim = copy.deepcopy(base)
+        for spec in specs:
+            sim.add_effect({"direct": cfg.direct, **spec})
+        models[name] = SimulatorModel(sim)
+    ecfg = EvalConfig(metrics=EvalMetricsConfig(with_lpips=False), frame_stride=cfg.eval_frame_stride,
+                      contact_sheets=False, progress=False)
+    with tempfile.TemporaryDirectory() as tmp:
+        return evaluate_models(models, ctx, HELDOUT, {k: Path(tmp) / k for k in models}, ecfg, log=lambda *a: None)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.discrepancy_terms", description=__doc__.splitlines()[0])
+    p.add_argument("--run", required=True, metavar="RUN", help="soma train run folder")
+    p.add_argument("--data", required=True, metavar="MEASURED", help="measured dataset")
+    p.add_argument("--variants", required=True, metavar="JSON", help='{"name": [effect spec, ...], ...}')
+    p.add_argument("--config", default="default", metavar="NAME|YAML", help="workflow config (config/discrepancy)")
+    p.add_argument("--json", default=None, metavar="FILE", help="also write {variant: {metric: value}} here")
+    args = p.parse_args(argv)
+    try:
+        variants = parse_variants(args.variants)
+    except ValueError as e:
+        print(f"discrepancy_terms: error: {e}", file=sys.stderr)
+        return 2
+    run = Path(args.run)
+    if not (run / "checkpoint.pt").is_file():
+        print(f"discrepancy_terms: error: {run} has no checkpoint.pt (a soma train run folder)", file=sys.stderr)
+        return 2
+    t0 = time.time()
+    res = score_variants(run, Path(args.data), variants, args.config)
+    print(f"run {run}, data {args.data}, {len(res[UNCHANGED]['episodes'])} held-out episodes ({time.time() - t0:.0f} s)")
+    base = res[UNCHANGED]["mean"]
+    for name, r in res.items():
+        m = r["mean"]
+        print(f"  {name:>16s}: depth RMSE {m['rmse']:.4f} m ({m['rmse'] / base['rmse']:.2f}x), "
+              f"Chamfer {1000 * m['chamfer']:.1f} mm ({m['chamfer'] / base['chamfer']:.2f}x)", flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps({k: {"rmse": r["mean"]["rmse"], "chamfer": r["mean"]["chamfer"]}
+                                               for k, r in res.items()}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
