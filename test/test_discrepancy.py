@@ -289,6 +289,18 @@ def test_candidates_are_fitted_as_direct_effects_and_recover_a_hidden_wind():
     assert abs(plain["accel"][1]) < 1.0 and abs(gridded["accel"][1] - 9.81) < 0.5, (plain, gridded)
     with pytest.raises(ValueError, match="grid_episodes"):
         load_discrepancy_config("fast", {"grid_episodes": 0})
+    # an unstable model (here a field of NaN) stops with SimulationDiverged at the first bad step: the
+    # workflow scores it +inf (the worst value, never a crash of a multi-hour run) and fits through it
+    from soma_ros.core.simulator import SimulationDiverged
+
+    bad = __import__("copy").deepcopy(sim)
+    bad.add_effect({"name": "wind", "direct": True, "accel": [float("nan"), 0.0, 0.0]})
+    with pytest.raises(SimulationDiverged, match="non-finite"):
+        list(_rollout(bad, ob, scene, frames))
+    assert np.isinf(residual_per_frame(bad, ob, scene)).all()
+    _, losses, values = fit_effect(bad, "linear_drag", [ob], scene, grid, 2, log=lambda *a: None)
+    assert losses and all(math.isinf(x) for x in losses) and values["coeff"] == [0.0]
+    assert decide({}, {}, 0.05, 0.1)[:2] == ("none", [])  # nothing could be ranked
 
 
 # ----------------------------------------------------------------------------- end to end

@@ -93,7 +93,7 @@ import torch
 from soma_ros.core.checkpoint import read_checkpoint, save_checkpoint, load_checkpoint
 from soma_ros.core.effects import EFFECTS
 from soma_ros.core.render import render
-from soma_ros.core.simulator import SceneContext, Simulator
+from soma_ros.core.simulator import SceneContext, SimulationDiverged, Simulator
 from soma_ros.core.splats import Splats
 
 from .config import load_train_config
@@ -313,9 +313,14 @@ def _rollout(sim: Simulator, ob: EpisodeObs, scene: SceneContext, keep: Sequence
 
 @torch.no_grad()
 def residual_per_frame(sim: Simulator, ob: EpisodeObs, scene: SceneContext) -> np.ndarray:
-    """[F] 3D residual (m) of each scored frame of an episode."""
-    out = [float(point_residual(ob.points[i], st.means)[0])
-           for i, (t, st) in enumerate(_rollout(sim, ob, scene, ob.frames))]
+    """[F] 3D residual (m) of each scored frame of an episode; +inf on every frame when the rollout
+    diverges (:class:`SimulationDiverged`: a candidate's value that makes the model unstable is the
+    worst value, never a crash of the whole workflow)."""
+    try:
+        out = [float(point_residual(ob.points[i], st.means)[0])
+               for i, (t, st) in enumerate(_rollout(sim, ob, scene, ob.frames))]
+    except SimulationDiverged:
+        return np.full(len(ob.frames), np.inf)
     return np.asarray(out)
 
 
@@ -476,6 +481,10 @@ def decide(explained: dict[str, float], samples: dict[str, np.ndarray], alpha: f
         rows.append({"name": k, "explained_fraction": float(e), "uncertainty": float(np.std(s)),
                      "ci_low": float(np.quantile(s, alpha)), "ci_high": float(np.quantile(s, 1 - alpha))})
     rows.sort(key=lambda r: -r["explained_fraction"])
+    if not rows:  # no candidate could be tested (none acts in this model, or all diverged)
+        return "none", [], {"alpha": alpha, "min_explained": min_explained, "winner_candidate": None,
+                            "winner_lower_bound": float("nan"),
+                            "significant": False}
     best = rows[0]
     info = {"alpha": alpha, "min_explained": min_explained, "winner_candidate": best["name"],
             "winner_lower_bound": best["ci_low"]}
@@ -532,11 +541,14 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
                 order = list(rng.permutation(len(fit_obs)))
             ob = fit_obs[order.pop()]
             opt.zero_grad()
-            terms = [point_residual(ob.points[i], st.means)[0]
-                     for i, (t, st) in enumerate(_rollout(model, ob, scene, ob.frames))]
+            try:
+                terms = [point_residual(ob.points[i], st.means)[0]
+                         for i, (t, st) in enumerate(_rollout(model, ob, scene, ob.frames))]
+            except SimulationDiverged:  # this value is unstable on this episode: no gradient to follow
+                terms = [torch.tensor(math.inf)]
             loss = torch.stack(terms).mean()
             losses.append(float(loss.detach()))
-            if not loss.requires_grad:
+            if not loss.requires_grad or not torch.isfinite(loss):
                 continue
             loss.backward()
             if all(p.grad is None or torch.isfinite(p.grad).all() for p in params):
@@ -679,6 +691,12 @@ def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Seq
         best_a, fit_with = _line_search(model, name, theta0, fit_obs, scene, cfg.line_search, fit_start)
         values = _values(model, name)
         cand_res[name] = [residual_per_frame(model, o, scene) for o in held_obs]
+        unstable = [o.name for o, r in zip(held_obs, cand_res[name]) if not np.isfinite(r).all()]
+        if unstable:  # stable on the fit episodes (line search), not held out: not a physical explanation
+            log(f"  candidate {name:15s} diverges with its fitted values {_values(model, name)} on held-out "
+                f"episode(s) {', '.join(unstable)}: not ranked ({time.time() - tc:.0f} s)")
+            del cand_res[name], cand_base[name]
+            continue
         den = max(min(sum(float(x.sum()) for x in alt) for alt in cand_base[name]), 1e-12)
         num = sum(float(x.sum()) for x in cand_res[name])
         e = 1.0 - num / den
@@ -692,7 +710,7 @@ def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Seq
         log(f"  candidate {name:15s} explained {e:+.3f}  fit {rec['fit_explained']:+.3f}"
             f"{f' (x{best_a:g})' if best_a > 0 else ' (no change: not better on its fit episodes)'}  params {values}"
             f"{msg}  ({time.time() - tc:.0f} s)")
-    samples = bootstrap_explained(cand_base, cand_res, cfg.bootstrap, cfg.seed)
+    samples = bootstrap_explained(cand_base, cand_res, cfg.bootstrap, cfg.seed) if cand_res else {}
     named, ranking, decision = decide({k: v["explained_fraction"] for k, v in fits.items()}, samples, cfg.alpha,
                                       cfg.min_explained)
     decision["calibrated_on_reference"] = bool(ref_obs)

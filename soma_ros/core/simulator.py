@@ -132,9 +132,15 @@ from .graph import EDGE_FEATURES, LevelGraphs, build_static_graphs, dynamic_edge
 from .hierarchy import Hierarchy, build_hierarchy
 from .splats import Splats
 
-__all__ = ["SceneContext", "RobotAction", "Episode", "SimState", "Simulator"]
+__all__ = ["SceneContext", "RobotAction", "Episode", "SimState", "Simulator", "SimulationDiverged"]
 
 _REFERENCE_MODES = ("initial", "force_free")
+
+
+class SimulationDiverged(FloatingPointError):
+    """A step produced non-finite positions: the model, or a term added to it, is unstable (e.g. a
+    negative drag that feeds energy in). Raised by :meth:`Simulator.step` so that no NaN reaches a
+    caller's neighbour search, renderer or published message."""
 
 
 # ----------------------------------------------------------------------------- inputs
@@ -658,6 +664,9 @@ class Simulator(nn.Module):
         f, f_direct, acting = self.effects.split_active(ctx, check_active=passive_rule, exempt=exempt)
         nxt, _ = self._advance(state, action, f, state.episode.reference, f_direct, passive=acting if passive_rule else 2)
         nxt.aux = ctx.state_out  # what the effects carry to the next step
+        if not bool(torch.isfinite(nxt.positions[0]).all()):
+            raise SimulationDiverged(f"step: non-finite positions after the step (effects: "
+                                     f"{', '.join(s.instance_key for s in self.effects.specs) or 'none'})")
         return nxt
 
     forward = step
