@@ -82,8 +82,14 @@ def main(argv=None) -> int:
     if not (run / "checkpoint.pt").is_file():
         print(f"discrepancy_terms: error: {run} has no checkpoint.pt (a soma train run folder)", file=sys.stderr)
         return 2
+    from soma_ros.core.config import ConfigError
+
     t0 = time.time()
-    res = score_variants(run, Path(args.data), variants, args.config)
+    try:
+        res = score_variants(run, Path(args.data), variants, args.config)
+    except (ConfigError, FileNotFoundError) as e:  # an unknown effect or parameter, a missing dataset
+        print(f"discrepancy_terms: error: {e}", file=sys.stderr)
+        return 2
     print(f"run {run}, data {args.data}, {len(res[UNCHANGED]['episodes'])} held-out episodes ({time.time() - t0:.0f} s)")
     base = res[UNCHANGED]["mean"]
     for name, r in res.items():

@@ -573,4 +573,5 @@ def test_terms_cli_scores_hand_set_terms_on_the_heldout_episodes(clean_run, tmp_
     assert main(args + ["--variants", "{not json"]) == 2
     assert main(args + ["--variants", '{"a": [{"accel": 1}]}']) == 2
     assert main(args + ["--variants", '{"unchanged": []}']) == 2
+    assert main(args + ["--variants", '{"a": [{"name": "wind", "no_such_parameter": 1}]}']) == 2
     assert "error" in capsys.readouterr().err
