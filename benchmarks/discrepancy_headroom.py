@@ -65,12 +65,12 @@ def headroom(before: dict, floor: dict, metrics: Sequence[str] = METRICS) -> dic
     return out
 
 
-def ground_truth_motion():
+def ground_truth_motion(bags: dict):
     """EVALUATION ONLY (it reads the world's ground-truth topic, which no model or workflow may): a
     rollout model that moves every splat with its 3 nearest ground-truth vertices (inverse-square
-    distance weights, translation only, fixed at frame 0). Its scores are what a model whose 3D
-    motion were exact would get with this scene's splats: the floor the reconstruction and the
-    renderer set, under any dynamics."""
+    distance weights, translation only, fixed at frame 0); ``bags``: {episode name: its bag}. Its
+    scores are what a model whose 3D motion were exact would get with this scene's splats: the floor
+    the reconstruction and the renderer set, under any dynamics."""
     import torch
 
     from trainer.baselines import RolloutModel
@@ -79,11 +79,8 @@ def ground_truth_motion():
     class GroundTruthMotion(RolloutModel):
         kind = "ground_truth_motion"
 
-        def __init__(self) -> None:
-            self.bags: dict = {}
-
         def rollout(self, ep, init, scene):
-            gt = torch.from_numpy(read_ground_truth_points(self.bags[ep.name],
+            gt = torch.from_numpy(read_ground_truth_points(bags[ep.name],
                                                            stamps_ns=[int(t) for t in ep.stamps_ns.tolist()])).float()
             m0, c0 = init.means.detach().float(), init.covariances().detach().float()
             d, j = torch.cdist(m0, gt[0]).topk(min(3, gt.shape[1]), largest=False)
@@ -95,30 +92,46 @@ def ground_truth_motion():
     return GroundTruthMotion()
 
 
+def heldout_context(run: Path, data: Path, cfg):
+    """(EvalContext of ``data`` with the workflow's held-out episodes marked, the run's model as the
+    workflow loads it): what ``soma discrepancy`` scores before / after on."""
+    from trainer.config import load_train_config
+    from trainer.discrepancy import load_model, mark_heldout
+    from trainer.evaluate import EvalContext
+
+    ctx = EvalContext(data, load_train_config(run / "train_config.yaml"), run / "scene")
+    mark_heldout(ctx, cfg)
+    return ctx, load_model(run / "checkpoint.pt", cfg)
+
+
+def evaluate_heldout(models: dict, ctx, cfg, folders: Optional[dict] = None) -> dict:
+    """{name: evaluate_models' result} of rollout ``models`` on the held-out episodes of ``ctx``, with the
+    workflow's evaluation protocol (frame stride, no LPIPS); reports in ``folders`` where given."""
+    from trainer.discrepancy import HELDOUT
+    from trainer.evaluate import EvalConfig, evaluate_models
+    from trainer.evaluate_metrics import EvalMetricsConfig
+
+    ecfg = EvalConfig(metrics=EvalMetricsConfig(with_lpips=False), frame_stride=cfg.eval_frame_stride,
+                      contact_sheets=False, progress=False)
+    with tempfile.TemporaryDirectory() as tmp:
+        where = {k: (folders or {}).get(k) or Path(tmp) / k for k in models}
+        return evaluate_models(models, ctx, HELDOUT, where, ecfg, log=lambda *a: None)
+
+
 def evaluate_unchanged(run: Path, data: Path, cfg, out: Optional[Path], log=print, frozen: bool = False) -> dict:
     """The unchanged model's metrics on the workflow's held-out episodes of ``data`` (metrics.json form);
     with ``frozen`` also, under key "frozen", those of a frozen object (:class:`trainer.baselines.StaticModel`:
     the first frame's splats, never moved) and under key "oracle" those of the ground truth's motion
     (:func:`ground_truth_motion`), scored in the same pass on the same episodes, frames and protocol."""
     from trainer.baselines import SimulatorModel, StaticModel
-    from trainer.config import load_train_config
-    from trainer.discrepancy import HELDOUT, load_model, mark_heldout
-    from trainer.evaluate import EvalConfig, EvalContext, evaluate_models
-    from trainer.evaluate_metrics import EvalMetricsConfig
+    from trainer.discrepancy import HELDOUT
 
-    ctx = EvalContext(data, load_train_config(run / "train_config.yaml"), run / "scene")
-    mark_heldout(ctx, cfg)
-    models = {"before": SimulatorModel(load_model(run / "checkpoint.pt", cfg))}
+    ctx, model = heldout_context(run, data, cfg)
+    models = {"before": SimulatorModel(model)}
     if frozen:
         models["frozen"] = StaticModel()
-        models["oracle"] = ground_truth_motion()
-        models["oracle"].bags = {r.name: r.bag for r in ctx.refs}
-    ecfg = EvalConfig(metrics=EvalMetricsConfig(with_lpips=False), frame_stride=cfg.eval_frame_stride,
-                      contact_sheets=False, progress=False)
-    with tempfile.TemporaryDirectory() as tmp:
-        folders = {"before": out if out is not None else Path(tmp) / "before", "frozen": Path(tmp) / "frozen",
-                   "oracle": Path(tmp) / "oracle"}
-        every = evaluate_models(models, ctx, HELDOUT, {k: folders[k] for k in models}, ecfg, log=lambda *a: None)
+        models["oracle"] = ground_truth_motion({r.name: r.bag for r in ctx.refs})
+    every = evaluate_heldout(models, ctx, cfg, {"before": out})
     res = every["before"]
     if frozen:
         res["frozen"], res["oracle"] = every["frozen"], every["oracle"]

@@ -17,7 +17,6 @@ import argparse
 import copy
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -43,26 +42,19 @@ def parse_variants(text: str) -> dict[str, list[dict]]:
 def score_variants(run: Path, data: Path, variants: dict[str, list[dict]], config: str = "default") -> dict:
     """{variant: evaluate_models' result} on the workflow's held-out episodes of ``data``; the model as
     trained under ``"unchanged"``."""
+    from benchmarks.discrepancy_headroom import evaluate_heldout, heldout_context
     from trainer.baselines import SimulatorModel
-    from trainer.config import load_train_config
-    from trainer.discrepancy import HELDOUT, load_discrepancy_config, load_model, mark_heldout
-    from trainer.evaluate import EvalConfig, EvalContext, evaluate_models
-    from trainer.evaluate_metrics import EvalMetricsConfig
+    from trainer.discrepancy import load_discrepancy_config
 
     cfg = load_discrepancy_config(config)
-    ctx = EvalContext(data, load_train_config(run / "train_config.yaml"), run / "scene")
-    mark_heldout(ctx, cfg)
-    base = load_model(run / "checkpoint.pt", cfg)
+    ctx, base = heldout_context(run, data, cfg)
     models = {UNCHANGED: SimulatorModel(base)}
     for name, specs in variants.items():
         sim = copy.deepcopy(base)
         for spec in specs:
             sim.add_effect({"direct": cfg.direct, **spec})
         models[name] = SimulatorModel(sim)
-    ecfg = EvalConfig(metrics=EvalMetricsConfig(with_lpips=False), frame_stride=cfg.eval_frame_stride,
-                      contact_sheets=False, progress=False)
-    with tempfile.TemporaryDirectory() as tmp:
-        return evaluate_models(models, ctx, HELDOUT, {k: Path(tmp) / k for k in models}, ecfg, log=lambda *a: None)
+    return evaluate_heldout(models, ctx, cfg)
 
 
 def main(argv=None) -> int:

@@ -545,10 +545,11 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
                 terms = [point_residual(ob.points[i], st.means)[0]
                          for i, (t, st) in enumerate(_rollout(model, ob, scene, ob.frames))]
             except SimulationDiverged:  # this value is unstable on this episode: no gradient to follow
-                terms = [torch.tensor(math.inf)]
+                losses.append(math.inf)
+                continue
             loss = torch.stack(terms).mean()
             losses.append(float(loss.detach()))
-            if not loss.requires_grad or not torch.isfinite(loss):
+            if not loss.requires_grad:
                 continue
             loss.backward()
             if all(p.grad is None or torch.isfinite(p.grad).all() for p in params):
