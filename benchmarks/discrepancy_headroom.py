@@ -118,7 +118,7 @@ def evaluate_heldout(models: dict, ctx, cfg, folders: Optional[dict] = None) -> 
         return evaluate_models(models, ctx, HELDOUT, where, ecfg, log=lambda *a: None)
 
 
-def evaluate_unchanged(run: Path, data: Path, cfg, out: Optional[Path], log=print, frozen: bool = False) -> dict:
+def evaluate_unchanged(run: Path, data: Path, cfg, out: Optional[Path], frozen: bool = False) -> dict:
     """The unchanged model's metrics on the workflow's held-out episodes of ``data`` (metrics.json form);
     with ``frozen`` also, under key "frozen", those of a frozen object (:class:`trainer.baselines.StaticModel`:
     the first frame's splats, never moved) and under key "oracle" those of the ground truth's motion

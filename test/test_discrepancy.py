@@ -575,3 +575,46 @@ def test_terms_cli_scores_hand_set_terms_on_the_heldout_episodes(clean_run, tmp_
     assert main(args + ["--variants", '{"unchanged": []}']) == 2
     assert main(args + ["--variants", '{"a": [{"name": "wind", "no_such_parameter": 1}]}']) == 2
     assert "error" in capsys.readouterr().err
+
+
+def test_fits_stay_inside_the_terms_physical_range():
+    """A world whose lifted rope is pulled down by 20 g: the mass_scale fit would take an excess of
+    about 20 (21 times the mass), outside its declared range [-0.9, 9]; the fit (grid start, Adam,
+    line search) stops on the bound and says so. Unbounded terms are unchanged by the projection."""
+    from soma_ros.core.config import load_model_config
+    from soma_ros.core.effects import EFFECTS, build_effect
+    from soma_ros.core.scenes import synthetic_rope
+    from soma_ros.core.simulator import SceneContext, Simulator
+    from trainer.discrepancy import EpisodeObs, _line_search, _rollout, fit_effect
+
+    for name, cls in EFFECTS.items():  # every declared bound names a parameter and is an interval
+        eff = build_effect(name)
+        for n, (lo, hi) in cls.bounds.items():
+            assert isinstance(getattr(eff, n), torch.nn.Parameter) and lo < 0.0 < hi, (name, n)
+    torch.manual_seed(0)
+    sp = synthetic_rope(300, seed=1, center=(0.0, 0.0, 0.3))
+    scene = SceneContext.table()
+    sim = Simulator(load_model_config("cpu")).eval()
+    sim.init_state(sp, scene)
+    world = __import__("copy").deepcopy(sim)
+    world.add_effect({"name": "mass_scale", "direct": True, "excess": 20.0})
+    T, frames = 5, [2, 4]  # before the falling rope reaches the table: the residual falls all the way to 20
+    ob = EpisodeObs("e", None, "train", scene.dt, torch.full((T, 4, 3), 3.0), torch.ones(T), sp, frames, [])
+    with torch.no_grad():
+        ob.points = [st.means[::4].clone() for _, st in _rollout(world, ob, scene, frames)]
+    cfg = load_discrepancy_config("fast", {"fit_iters": 6, "fit_lr": 0.5, "grid_start": [5, 10, 20, 40]})
+    model, _, values = fit_effect(sim, "mass_scale", [ob], scene, cfg, cfg.fit_iters, log=lambda *a: None)
+    assert values["excess"] == [pytest.approx(9.0)], values
+    assert model.effects["mass_scale"].project_() == ["excess"]  # on its bound, reported as such
+    zero = [torch.zeros_like(p) for _, p in model.acting_parameters("mass_scale")]
+    a, _ = _line_search(model, "mass_scale", zero, [ob], scene, [1.5], float("inf"))
+    assert a == 1.5 and float(model.effects["mass_scale"].excess) == pytest.approx(9.0)  # overshoot clamped
+    # within its range the fit is free: the same world at excess 3 is recovered near 3
+    world.effects["mass_scale"].excess.data.fill_(3.0)
+    with torch.no_grad():
+        ob.points = [st.means[::4].clone() for _, st in _rollout(world, ob, scene, frames)]
+    values = fit_effect(sim, "mass_scale", [ob], scene, load_discrepancy_config(
+        "fast", {"fit_iters": 6, "fit_lr": 0.1, "grid_start": [1, 2, 3, 4]}), 6, log=lambda *a: None)[2]
+    assert 2.0 < values["excess"][0] < 4.0, values
+    wind = build_effect({"name": "wind", "accel": [0.0, 0.0, -400.0]})
+    assert wind.project_() == [] and wind.accel.tolist() == [0.0, 0.0, -400.0]

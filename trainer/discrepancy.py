@@ -554,6 +554,7 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
             loss.backward()
             if all(p.grad is None or torch.isfinite(p.grad).all() for p in params):
                 opt.step()
+                model.effects[key].project_()  # inside the term's physical range (Effect.bounds)
             sched.step()
             if it >= iters // 2:
                 for a, p in zip(avg, params):
@@ -565,6 +566,7 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
                     p.copy_(a / n_avg)
     for p in params:
         p.requires_grad_(False)
+    model.effects[key].project_()
     return model, losses, _values(model, key)
 
 
@@ -586,8 +588,9 @@ def _grid_start(model: Simulator, key: str, fit_obs: Sequence[EpisodeObs], scene
         for i in range(flat.numel()):
             start = float(flat[i])
             best_v = start
+            lo, hi = model.effects[key].bounds.get(name, (-math.inf, math.inf))
             for k in cfg.grid_start:
-                flat[i] = start + float(k) * float(scale.get(name, 1.0))
+                flat[i] = min(max(start + float(k) * float(scale.get(name, 1.0)), lo), hi)
                 r = score()
                 if r < best:
                     best, best_v = r, float(flat[i])
@@ -608,12 +611,14 @@ def _line_search(model: Simulator, name: str, theta0: list[torch.Tensor], obs: S
         with torch.no_grad():
             for p, t, t0 in zip(params, theta, theta0):
                 p.copy_(t0 + a * (t - t0))
+        model.effects[name].project_()  # an overshoot (a > 1) stays inside the physical range
         r = float(sum(residual_per_frame(model, o, scene).sum() for o in obs))
         if r < best:
             best_a, best = float(a), r
     with torch.no_grad():
         for p, t, t0 in zip(params, theta, theta0):
             p.copy_(t0 + best_a * (t - t0))
+    model.effects[name].project_()
     return best_a, best
 
 
@@ -701,7 +706,11 @@ def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Seq
         den = max(min(sum(float(x.sum()) for x in alt) for alt in cand_base[name]), 1e-12)
         num = sum(float(x.sum()) for x in cand_res[name])
         e = 1.0 - num / den
-        rec.update(parameters=values, fit_loss=losses, explained_fraction=e,
+        at_bound = [n for n in model.effects[name].project_() if n in values]
+        if at_bound:
+            log(f"  candidate {name:15s} fitted at the edge of its physical range ({', '.join(at_bound)}): the data "
+                "ask for more than this term can be")
+        rec.update(parameters=values, at_bound=at_bound, fit_loss=losses, explained_fraction=e,
                    explained_vs_unchanged=1.0 - num / den0, fit_explained=1.0 - fit_with / max(fit_start, 1e-12),
                    kept=best_a > 0, line_search_scale=best_a, seconds=round(time.time() - tc, 1))
         fits[name] = rec

@@ -213,7 +213,9 @@ def write_report(out: Path, report: dict, stage1: dict, samples: dict, n_cluster
     ]
     for r in rk:
         p = report["fits"][r["name"]]["parameters"]
-        ps = ", ".join(f"{k}={np.round(v, 4).tolist()}" for k, v in p.items())
+        edge = set(report["fits"][r["name"]].get("at_bound", []))
+        ps = ", ".join(f"{k}={np.round(v, 4).tolist()}{' (at its physical bound)' if k in edge else ''}"
+                       for k, v in p.items())
         lines.append(f"| {r['name']} | {r['explained_fraction']:+.3f} | {r['uncertainty']:.3f} | "
                      f"[{r['ci_low']:+.3f}, {r['ci_high']:+.3f}] | {ps} |")
     lines += ["", "![ranking](ranking.png)", "", "## Gap on held-out measured episodes", "",

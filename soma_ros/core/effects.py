@@ -200,6 +200,13 @@ class Effect(nn.Module):
     fit_scale: ClassVar[dict[str, float]] = {}
     #: a physics prior (:mod:`.physics`): the other terms act through it (``physics_modifier``)
     hosts_modifiers: ClassVar[bool] = False
+    #: physical range (lo, hi) of a learnable parameter's every element, where one exists (absent:
+    #: unbounded). A fitter keeps its values inside (:func:`trainer.discrepancy.fit_effect`): a value
+    #: outside describes another object, not this one with an effect (a rope 10^4 times softer
+    #: is a string). Only properties of the object identified by the model have one (mass,
+    #: stiffness: within two orders of magnitude, or one for mass, of the identified value); fields,
+    #: drags and the grip do not (a wind can be any strength, a grip can let go entirely).
+    bounds: ClassVar[dict[str, tuple[float, float]]] = {}
 
     @dataclass
     class Params:
@@ -234,6 +241,18 @@ class Effect(nn.Module):
         through a physics prior (``through_prior``) or as a force of its own."""
         skip = self.force_only if through_prior else self.prior_only
         return [(n, p) for n, p in self.named_parameters() if n not in skip]
+
+    def project_(self) -> list[str]:
+        """Clamp every bounded parameter into :attr:`bounds` in place (no autograd record);
+        returns the names of those that were outside or sit on a bound."""
+        at: list[str] = []
+        with torch.no_grad():
+            for n, (lo, hi) in self.bounds.items():
+                p = getattr(self, n)
+                p.clamp_(min=lo, max=hi)
+                if bool(((p <= lo) | (p >= hi)).any()):
+                    at.append(n)
+        return at
 
     def extra_repr(self) -> str:
         return ", ".join(f"{f.name}={getattr(self.params, f.name)!r}" for f in dataclasses.fields(self.params))

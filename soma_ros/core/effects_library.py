@@ -36,16 +36,19 @@ mass_scale          extra weight of the lifted material: F = excess m g s(d),
                     internal forces are fixed, a heavier object differs mainly in
                     how its unsupported parts sag; this is that handle. [excess*,
                     d0, d1]
+stiffness_scale     a stiffer (> 0) or softer (< 0) material, acting only through a
+                    physics prior (:mod:`.physics`); without one the elasticity lives
+                    inside the learned network and the term has no handle. [log_scale*]
 ==================  ===========================================================
 
-Not here: a stiffness term. The object's elasticity lives inside the learned
-network (there is no rest shape or strain in :class:`EffectContext`), so a
-clean, few-parameter force handle for "stiffer material" does not exist at
-this interface; the workflow lists it as not covered.
+Bounds (``Effect.bounds``): mass_scale's excess in [-0.9, 9] (0.1 to 10 times the
+identified mass) and stiffness_scale's log_scale in [-ln 100, ln 100]; the
+discrepancy workflow keeps its fits inside them. The other terms are unbounded.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -146,6 +149,8 @@ class GripperSlip(Effect):
 class MassScale(Effect):
     """Extra (signed) weight of the material lifted off the table (module docstring)."""
 
+    bounds = {"excess": (-0.9, 9.0)}  # 0.1 to 10 times the identified mass
+
     @dataclass
     class Params:
         excess: float = 0.0
@@ -176,6 +181,7 @@ class StiffnessScale(Effect):
 
     fit_scale = {"log_scale": 2.0}
     prior_only = ("log_scale",)
+    bounds = {"log_scale": (-math.log(100.0), math.log(100.0))}  # 1/100 to 100 times the identified stiffness
 
     @dataclass
     class Params:
