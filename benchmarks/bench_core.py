@@ -21,6 +21,7 @@ Usage: ``soma bench core`` or ``python -m benchmarks.bench_core`` (same options)
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import platform
@@ -175,14 +176,20 @@ def run_core(
     kind: str = "cloth",
     render: bool = True,
     render_repeats: int = 3,
+    json_path: Optional[str] = None,
 ) -> list[dict]:
-    """Run the benchmark, print the machine and the table; returns the step rows."""
+    """Run the benchmark, print the machine and the table; returns the step rows.
+
+    ``json_path``: also write the machine descriptions, the step rows and the render
+    times ({device: {splats: fwd ms}}) there as JSON."""
     if devices is None:
         devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     rows: list[dict] = []
     render_ms: dict = {}
+    machines: list[str] = []
     for dev in devices:
-        print(machine_description(dev), flush=True)
+        machines.append(machine_description(dev))
+        print(machines[-1], flush=True)
         for model in models:
             for n in splats:
                 k = paper_steps if (model == "paper" and str(dev) == "cpu") else steps
@@ -194,6 +201,14 @@ def run_core(
     print(f"object: {kind}; step = Simulator.step under no_grad, median (min) of the timed steps "
           f"({steps}; paper on CPU {paper_steps}); render = 320x240 forward (benchmarks.bench_render)")
     print(format_table(rows, render_ms))
+    if json_path:
+        render_json: dict = {}
+        for (dev, n), ms in render_ms.items():
+            render_json.setdefault(dev, {})[str(n)] = ms
+        with open(json_path, "w") as f:
+            json.dump(dict(machines=machines, kind=kind, steps=steps, paper_steps=paper_steps,
+                           rows=rows, render_fwd_ms_320x240=render_json), f, indent=1)
+        print(f"wrote {json_path}")
     return rows
 
 
@@ -206,6 +221,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--object", dest="kind", default="cloth", choices=["cloth", "rope", "doll"])
     p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
     p.add_argument("--no-render", action="store_true", help="skip render timing")
+    p.add_argument("--json", dest="json_path", default=None, help="also write the rows to this JSON file")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -214,6 +230,7 @@ def run(args: argparse.Namespace) -> int:
     run_core(
         models=args.models, splats=args.splats, devices=args.device, steps=args.steps,
         paper_steps=args.paper_steps, kind=args.kind, render=not args.no_render,
+        json_path=getattr(args, "json_path", None),
     )
     return 0
 

@@ -14,6 +14,7 @@ prints a table naming the machine; :func:`bench_render` returns the rows
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import platform
@@ -178,6 +179,7 @@ def main(argv=None) -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (CPU)")
     ap.add_argument("--tile", type=int, default=RenderConfig.tile_size)
     ap.add_argument("--splats", type=int, nargs="+", default=[1000, 4000, 13000])
+    ap.add_argument("--json", dest="json_path", default=None, help="also write the rows to this JSON file")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     print(machine_description(args.device))
@@ -185,6 +187,11 @@ def main(argv=None) -> None:
                         cfg=RenderConfig(tile_size=args.tile))
     print(f"renderer backend {rows[0]['backend']}, tile {args.tile}, median of {args.repeats}")
     print(format_table(rows))
+    if args.json_path:
+        with open(args.json_path, "w") as f:
+            json.dump(dict(machine=machine_description(args.device), tile=args.tile, repeats=args.repeats,
+                           rows=rows), f, indent=1)
+        print(f"wrote {args.json_path}")
 
 
 if __name__ == "__main__":
