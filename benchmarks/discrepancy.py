@@ -219,6 +219,7 @@ def run(args: argparse.Namespace) -> int:
                         args.seed + 1, "none", args.world_config, log, args.effects_config, args.frames)
         over["reference_data"] = str(ref)
         over["reference_episodes"] = args.reference_episodes  # all of them (the config's default picks 12)
+    over["jobs"] = args.jobs
     cfg = load_discrepancy_config(args.config, over)
     rows = []
     floor = None
@@ -281,6 +282,8 @@ def main(argv=None) -> int:
                    help="frames per generated episode (default: the world's tiny preset, 40 at 30 fps); the same "
                         "motions, slower, so an effect has longer to act")
     p.add_argument("--no-negative", action="store_true", help="skip the negative control (no effect)")
+    p.add_argument("--jobs", type=int, default=1, metavar="N",
+                   help="candidates fitted in N worker processes (the workflow's `jobs`; results do not depend on it)")
     p.add_argument("--reference-episodes", type=int, default=12, metavar="N",
                    help="effect-free episodes recorded with world seed + 1 as the workflow's own-error reference "
                         "(0: the workflow's default, the model's training dataset outside its train split)")

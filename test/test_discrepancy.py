@@ -4,6 +4,7 @@ the statistics that name a winner, and the workflow end to end on tiny effect-fr
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import shutil
@@ -429,7 +430,19 @@ def test_calibration_on_the_models_own_conditions_separates_its_error_from_the_n
     # without the calibration the model's own error (a0) is "named" on data without a new effect
     fit, held = episodes(a0, [3, 4], "train"), episodes(a0, [5, 6], "test")
     base = [residual_per_frame(sim, o, scene) for o in held]
-    assert rank_candidates(sim, fit, held, base, scene, cfg, quiet)[0] == "wind"
+    one = rank_candidates(sim, fit, held, base, scene, cfg, quiet)
+    assert one[0] == "wind"
+    # the candidates fitted in 2 worker processes: the same fits and ranking, and the returned models
+    # (rebuilt from the fitted values) give the held-out residuals the fits were scored with
+    two = rank_candidates(sim, fit, held, base, scene, dataclasses.replace(cfg, jobs=2), quiet)
+    assert two[0] == one[0] and two[1] == one[1]
+    for name, rec in one[3].items():
+        assert two[3][name]["parameters"] == rec["parameters"]
+        assert two[3][name]["explained_fraction"] == rec["explained_fraction"]
+        again = sum(float(residual_per_frame(two[4][name], o, scene).sum()) for o in held)
+        assert 1.0 - again / sum(float(b.sum()) for b in base) == pytest.approx(rec["explained_vs_unchanged"], abs=1e-9)
+    with pytest.raises(ValueError, match="jobs"):
+        load_discrepancy_config("fast", {"jobs": 0})
 
 
 def test_cli_reports_a_bad_reference_dataset_clearly(clean_run, tmp_path, capsys):

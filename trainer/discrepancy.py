@@ -80,6 +80,7 @@ import copy
 import dataclasses
 import json
 import math
+import multiprocessing as mp
 import os
 import shutil
 import time
@@ -149,6 +150,8 @@ class DiscrepancyConfig:
     eval_frame_stride: int = 2
     contact_sheets: bool = True
     seed: int = 0
+    jobs: int = 1  # candidates fitted in parallel worker processes (spawned, one torch thread each; CPU models);
+    # the results do not depend on it
 
     def validate(self) -> "DiscrepancyConfig":
         unknown = [c for c in self.candidates if c not in EFFECTS]
@@ -164,6 +167,8 @@ class DiscrepancyConfig:
             raise ValueError(f"discrepancy: line_search scales must be > 0, got {self.line_search}")
         if not (0 < self.alpha < 0.5) or not (self.fit_lr > 0) or not (0 < self.fit_lr_final <= 1):
             raise ValueError("discrepancy: alpha in (0, 0.5), fit_lr > 0 and fit_lr_final in (0, 1] required")
+        if self.jobs < 1:
+            raise ValueError(f"discrepancy: jobs must be >= 1, got {self.jobs}")
         if self.grid_episodes < 1 or any(not math.isfinite(float(k)) for k in self.grid_start):
             raise ValueError("discrepancy: grid_episodes >= 1 and finite grid_start multiples required")
         return self
@@ -626,6 +631,139 @@ def _values(model: Simulator, name: str) -> dict:
     return {n: p.detach().cpu().reshape(-1).tolist() for n, p in model.acting_parameters(name)}
 
 
+@dataclass
+class _CandidateWork:
+    """What every candidate's fit reads (shared by the worker processes of ``cfg.jobs``)."""
+
+    sim: Simulator
+    fit_obs: list
+    held_obs: list
+    base: list
+    scene: SceneContext
+    cfg: "DiscrepancyConfig"
+    ref_obs: list
+    ref_scene: SceneContext
+    fit_base: float
+    ref_base: float
+    den0: float
+
+
+def with_effect(sim: Simulator, name: str, values: dict, cfg: "DiscrepancyConfig") -> Simulator:
+    """A copy of ``sim`` with effect ``name`` added as the workflow adds a candidate, its acting
+    parameters set to ``values`` ({parameter: flat list}, as :func:`fit_effect` returns them) and
+    every parameter frozen: the fitted model, rebuilt from its values."""
+    model = copy.deepcopy(sim)
+    model.add_effect({"name": name, "direct": bool(cfg.direct), "fitted_after_training": True})
+    for p in model.parameters():
+        p.requires_grad_(False)
+    with torch.no_grad():
+        for n, p in model.acting_parameters(name):
+            p.copy_(torch.as_tensor(values[n], dtype=p.dtype, device=p.device).reshape(p.shape))
+    return model.eval()
+
+
+def fit_candidate(w: _CandidateWork, name: str, log: Callable[[str], None]) -> Optional[dict]:
+    """One candidate of :func:`rank_candidates`: calibrated on the reference (when there is one),
+    fitted on the measured fit episodes, line-searched, scored on the held-out ones. Returns
+    {"rec": its report record, "res": held-out residuals, "base": its baselines}, or None when
+    the model gives it no handle or its fitted values diverge held out."""
+    sim, fit_obs, held_obs, scene, cfg = w.sim, w.fit_obs, w.held_obs, w.scene, w.cfg
+    ref_obs, ref_scene = w.ref_obs, w.ref_scene
+    tc = time.time()
+    rec: dict = {}
+    probe = copy.deepcopy(sim)
+    probe.add_effect({"name": name, "direct": bool(cfg.direct)})
+    if not probe.acting_parameters(name):  # e.g. stiffness_scale in a model without a physics prior
+        log(f"  candidate {name:15s} has no handle in this model (its parameters act only through a physics "
+            "prior): not tested")
+        return None
+    del probe
+    if ref_obs:  # calibration on the model's own conditions
+        calib, _, _ = fit_effect(sim, name, ref_obs, ref_scene, cfg, cfg.fit_iters, log)
+        zero = [torch.zeros_like(p) for _, p in calib.acting_parameters(name)]
+        a, r = _line_search(calib, name, zero, ref_obs, ref_scene, cfg.line_search, w.ref_base)
+        rec.update(reference_parameters=_values(calib, name), reference_explained=1.0 - r / max(w.ref_base, 1e-12),
+                   reference_scale=a)
+        bases = [[residual_per_frame(calib, o, scene) for o in held_obs], list(w.base)]
+        fit_start = float(sum(residual_per_frame(calib, o, scene).sum() for o in fit_obs))
+        model, losses, _ = fit_effect(calib, name, fit_obs, scene, cfg, cfg.fit_iters, log, key=name)
+        theta0 = [p.detach().clone() for _, p in calib.acting_parameters(name)]
+        # the same budget on the reference: the re-fit continues an optimisation the calibration
+        # may not have finished, and what more steps on *any* data would find is not new
+        cont, _, _ = fit_effect(calib, name, ref_obs, ref_scene, cfg, cfg.fit_iters, log, key=name)
+        _line_search(cont, name, theta0, ref_obs, ref_scene, cfg.line_search, r)  # as the re-fit's
+        bases.append([residual_per_frame(cont, o, scene) for o in held_obs])
+        rec.update(reference_continued_parameters=_values(cont, name))
+    else:
+        model, losses, _ = fit_effect(sim, name, fit_obs, scene, cfg, cfg.fit_iters, log)
+        bases = [list(w.base)]
+        fit_start = w.fit_base
+        theta0 = [torch.zeros_like(p) for _, p in model.acting_parameters(name)]
+    best_a, fit_with = _line_search(model, name, theta0, fit_obs, scene, cfg.line_search, fit_start)
+    values = _values(model, name)
+    res = [residual_per_frame(model, o, scene) for o in held_obs]
+    unstable = [o.name for o, r in zip(held_obs, res) if not np.isfinite(r).all()]
+    if unstable:  # stable on the fit episodes (line search), not held out: not a physical explanation
+        log(f"  candidate {name:15s} diverges with its fitted values {values} on held-out "
+            f"episode(s) {', '.join(unstable)}: not ranked ({time.time() - tc:.0f} s)")
+        return None
+    den = max(min(sum(float(x.sum()) for x in alt) for alt in bases), 1e-12)
+    num = sum(float(x.sum()) for x in res)
+    e = 1.0 - num / den
+    at_bound = [n for n in model.effects[name].project_() if n in values]
+    if at_bound:
+        log(f"  candidate {name:15s} fitted at the edge of its physical range ({', '.join(at_bound)}): the data "
+            "ask for more than this term can be")
+    rec.update(parameters=values, at_bound=at_bound, fit_loss=losses, explained_fraction=e,
+               explained_vs_unchanged=1.0 - num / w.den0, fit_explained=1.0 - fit_with / max(fit_start, 1e-12),
+               kept=best_a > 0, line_search_scale=best_a, seconds=round(time.time() - tc, 1))
+    msg = (f"  (calibrated {rec['reference_parameters']}, own-data explained {rec['reference_explained']:+.3f}; "
+           f"vs unchanged {rec['explained_vs_unchanged']:+.3f})" if ref_obs else "")
+    log(f"  candidate {name:15s} explained {e:+.3f}  fit {rec['fit_explained']:+.3f}"
+        f"{f' (x{best_a:g})' if best_a > 0 else ' (no change: not better on its fit episodes)'}  params {values}"
+        f"{msg}  ({time.time() - tc:.0f} s)")
+    return {"rec": rec, "res": res, "base": bases}
+
+
+_WORK: Optional[_CandidateWork] = None  # a worker process's copy of the work (set by _init_worker)
+
+
+def _init_worker(work: _CandidateWork) -> None:
+    global _WORK
+    torch.set_num_threads(1)
+    _WORK = work
+
+
+def _fit_in_worker(name: str) -> tuple[str, Optional[dict], list[str]]:
+    lines: list[str] = []
+    return name, fit_candidate(_WORK, name, lines.append), lines
+
+
+def _map_candidates(w: _CandidateWork, names: list[str], log: Callable[[str], None]):
+    """Yield (name, fit_candidate's result, its log lines) per candidate, in ``names`` order:
+    one after another (lines logged live, none returned), or with ``cfg.jobs`` > 1 in that many
+    fresh worker processes (spawned, not forked: no thread or lock of the parent, a ROS
+    executor's say, is inherited), each sent the work once, with one torch thread; CPU models
+    only (a CUDA model fits one candidate at a time). The fits are independent and seeded
+    alike, so the results do not depend on the number of workers."""
+    jobs = min(int(w.cfg.jobs), len(names))
+    on_cpu = all(p.device.type == "cpu" for p in w.sim.parameters())
+    if jobs > 1 and not on_cpu:
+        log(f"  jobs={w.cfg.jobs} needs a CPU model: fitting one candidate at a time")
+    if jobs <= 1 or not on_cpu:
+        for name in names:
+            yield name, fit_candidate(w, name, log), []
+        return
+    from concurrent.futures import ProcessPoolExecutor
+
+    log(f"  fitting {len(names)} candidates in {jobs} worker processes (one torch thread each; each "
+        "candidate's lines when it is done)")
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"), initializer=_init_worker,
+                             initargs=(w,)) as ex:
+        for f in [ex.submit(_fit_in_worker, n) for n in names]:
+            yield f.result()
+
+
 def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Sequence[EpisodeObs],
                     base: Sequence[np.ndarray], scene: SceneContext, cfg: DiscrepancyConfig,
                     log: Callable[[str], None] = print, ref_obs: Sequence[EpisodeObs] = (),
@@ -659,67 +797,20 @@ def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Seq
     fit_base = float(sum(r.sum() for r in fit_res))
     ref_base = float(sum(r.sum() for r in ref_res)) if ref_obs else 0.0
     den0 = max(sum(float(x.sum()) for x in base), 1e-12)
+    work = _CandidateWork(sim, list(fit_obs), list(held_obs), list(base), scene, cfg, list(ref_obs), ref_scene,
+                          fit_base, ref_base, den0)
     cand_res: dict[str, list[np.ndarray]] = {}
     cand_base: dict[str, list[list[np.ndarray]]] = {}  # per candidate: its baselines (the smallest sum counts)
     fits: dict[str, dict] = {}
     models: dict[str, Simulator] = {}
-    for name in cfg.candidates:
-        tc = time.time()
-        rec: dict = {}
-        probe = copy.deepcopy(sim)
-        probe.add_effect({"name": name, "direct": bool(cfg.direct)})
-        if not probe.acting_parameters(name):  # e.g. stiffness_scale in a model without a physics prior
-            log(f"  candidate {name:15s} has no handle in this model (its parameters act only through a physics "
-                "prior): not tested")
+    for name, out, lines in _map_candidates(work, list(cfg.candidates), log):
+        for line in lines:
+            log(line)
+        if out is None:
             continue
-        del probe
-        if ref_obs:  # calibration on the model's own conditions
-            calib, _, _ = fit_effect(sim, name, ref_obs, ref_scene, cfg, cfg.fit_iters, log)
-            zero = [torch.zeros_like(p) for _, p in calib.acting_parameters(name)]
-            a, r = _line_search(calib, name, zero, ref_obs, ref_scene, cfg.line_search, ref_base)
-            rec.update(reference_parameters=_values(calib, name), reference_explained=1.0 - r / max(ref_base, 1e-12),
-                       reference_scale=a)
-            cand_base[name] = [[residual_per_frame(calib, o, scene) for o in held_obs], list(base)]
-            fit_start = float(sum(residual_per_frame(calib, o, scene).sum() for o in fit_obs))
-            model, losses, _ = fit_effect(calib, name, fit_obs, scene, cfg, cfg.fit_iters, log, key=name)
-            theta0 = [p.detach().clone() for _, p in calib.acting_parameters(name)]
-            # the same budget on the reference: the re-fit continues an optimisation the calibration
-            # may not have finished, and what more steps on *any* data would find is not new
-            cont, _, _ = fit_effect(calib, name, ref_obs, ref_scene, cfg, cfg.fit_iters, log, key=name)
-            _line_search(cont, name, theta0, ref_obs, ref_scene, cfg.line_search, r)  # as the re-fit's
-            cand_base[name].append([residual_per_frame(cont, o, scene) for o in held_obs])
-            rec.update(reference_continued_parameters=_values(cont, name))
-        else:
-            model, losses, _ = fit_effect(sim, name, fit_obs, scene, cfg, cfg.fit_iters, log)
-            cand_base[name] = [list(base)]
-            fit_start = fit_base
-            theta0 = [torch.zeros_like(p) for _, p in model.acting_parameters(name)]
-        best_a, fit_with = _line_search(model, name, theta0, fit_obs, scene, cfg.line_search, fit_start)
-        values = _values(model, name)
-        cand_res[name] = [residual_per_frame(model, o, scene) for o in held_obs]
-        unstable = [o.name for o, r in zip(held_obs, cand_res[name]) if not np.isfinite(r).all()]
-        if unstable:  # stable on the fit episodes (line search), not held out: not a physical explanation
-            log(f"  candidate {name:15s} diverges with its fitted values {_values(model, name)} on held-out "
-                f"episode(s) {', '.join(unstable)}: not ranked ({time.time() - tc:.0f} s)")
-            del cand_res[name], cand_base[name]
-            continue
-        den = max(min(sum(float(x.sum()) for x in alt) for alt in cand_base[name]), 1e-12)
-        num = sum(float(x.sum()) for x in cand_res[name])
-        e = 1.0 - num / den
-        at_bound = [n for n in model.effects[name].project_() if n in values]
-        if at_bound:
-            log(f"  candidate {name:15s} fitted at the edge of its physical range ({', '.join(at_bound)}): the data "
-                "ask for more than this term can be")
-        rec.update(parameters=values, at_bound=at_bound, fit_loss=losses, explained_fraction=e,
-                   explained_vs_unchanged=1.0 - num / den0, fit_explained=1.0 - fit_with / max(fit_start, 1e-12),
-                   kept=best_a > 0, line_search_scale=best_a, seconds=round(time.time() - tc, 1))
-        fits[name] = rec
-        models[name] = model
-        msg = (f"  (calibrated {rec['reference_parameters']}, own-data explained {rec['reference_explained']:+.3f}; "
-               f"vs unchanged {rec['explained_vs_unchanged']:+.3f})" if ref_obs else "")
-        log(f"  candidate {name:15s} explained {e:+.3f}  fit {rec['fit_explained']:+.3f}"
-            f"{f' (x{best_a:g})' if best_a > 0 else ' (no change: not better on its fit episodes)'}  params {values}"
-            f"{msg}  ({time.time() - tc:.0f} s)")
+        fits[name] = out["rec"]
+        cand_res[name], cand_base[name] = out["res"], out["base"]
+        models[name] = with_effect(sim, name, out["rec"]["parameters"], cfg)
     samples = bootstrap_explained(cand_base, cand_res, cfg.bootstrap, cfg.seed) if cand_res else {}
     named, ranking, decision = decide({k: v["explained_fraction"] for k, v in fits.items()}, samples, cfg.alpha,
                                       cfg.min_explained)

@@ -1,7 +1,7 @@
 """`soma discrepancy`: find where the model and measured data disagree, name the missing effect,
 add it to the model and show the gap shrink (issue #8).
 
-    soma discrepancy --checkpoint RUN/checkpoint.pt --data MEASURED --out DIR [--config default|fast|YAML]
+    soma discrepancy --checkpoint RUN/checkpoint.pt --data MEASURED --out DIR [--config default|fast|YAML] [--jobs N]
 
 ``--checkpoint``: a ``soma train`` run folder or the ``checkpoint.pt`` in one (its ``scene/`` and
 ``train_config.yaml`` define the initial states). ``--data``: the measured dataset (manifest.json
@@ -39,6 +39,9 @@ def register(subparsers) -> None:
                    help="dataset of the model's own conditions for the own-error control (default: the checkpoint's "
                         "training dataset outside its train split; 'none': off)")
     p.add_argument("--fit-iters", type=int, default=None, metavar="N", help="Adam steps per candidate")
+    p.add_argument("--jobs", type=int, default=None, metavar="N",
+                   help="fit the candidates in N worker processes (CPU models; default: the config's, 1); "
+                        "the results do not depend on it")
     p.add_argument("--feature-only", action="store_true",
                    help="add candidates as network features only (default: direct effects, their force is also "
                         "integrated explicitly on top of the learned dynamics)")
@@ -61,6 +64,8 @@ def run(args: argparse.Namespace) -> int:
         over["reference_data"] = args.reference
     if args.feature_only:
         over["direct"] = False
+    if args.jobs is not None:
+        over["jobs"] = args.jobs
     try:
         cfg = load_discrepancy_config(args.config, over)
         rep = run_discrepancy(Path(args.checkpoint), Path(args.data), Path(args.out), cfg,
