@@ -70,6 +70,21 @@ def _sync(device) -> None:
         torch.cuda.synchronize()
 
 
+def timed_steps(sim, state, actions, device, warmup: int = 0):
+    """Step ``sim`` from ``state`` through ``actions`` under no_grad, each step synced before and
+    after; returns (the last state, ms of every step after the first ``warmup``)."""
+    times = []
+    with torch.no_grad():
+        for i, a in enumerate(actions):
+            _sync(device)
+            t = time.perf_counter()
+            state = sim.step(state, a)
+            _sync(device)
+            if i >= warmup:
+                times.append((time.perf_counter() - t) * 1e3)
+    return state, times
+
+
 def _actions(sp: Splats, steps: int, seed: int = 0) -> list[RobotAction]:
     """30 control points (a 1 cm blob) sweeping across the object's top, gripper cycling."""
     g = torch.Generator().manual_seed(seed)
@@ -97,16 +112,7 @@ def bench_step(model: str, n: int, device: str = "cpu", steps: int = 20, warmup:
         state = sim.init_state(sp, scene)
     _sync(device)
     init_ms = (time.perf_counter() - t0) * 1e3
-    actions = _actions(sp, warmup + steps)
-    times = []
-    with torch.no_grad():
-        for i, a in enumerate(actions):
-            _sync(device)
-            t = time.perf_counter()
-            state = sim.step(state, a)
-            _sync(device)
-            if i >= warmup:
-                times.append((time.perf_counter() - t) * 1e3)
+    state, times = timed_steps(sim, state, _actions(sp, warmup + steps), device, warmup)
     if not torch.isfinite(state.means).all():
         raise RuntimeError(f"bench_step: non-finite state ({model}, {n} splats)")
     h = sim.hierarchy

@@ -43,16 +43,11 @@ from typing import Optional, Sequence
 import torch
 
 import soma_ros.core.simulator as simulator_module
-from benchmarks.bench_core import _actions, machine_description, make_object
+from benchmarks.bench_core import _actions, _sync, machine_description, make_object, timed_steps
 from soma_ros.core.config import load_model_config
 from soma_ros.core.simulator import SceneContext, Simulator
 
 __all__ = ["bypass_finite_check", "finite_check_cost", "physics_step", "main"]
-
-
-def _sync(device) -> None:
-    if str(device).startswith("cuda"):
-        torch.cuda.synchronize()
 
 
 class _AlwaysFinite:
@@ -97,23 +92,17 @@ def _build(cfg, n: int, device: str, kind: str):
 def _block(sim, state0, actions, device, synced: bool) -> float:
     """ms per step over the actions, from state0."""
     state = state0
-    times = []
-    with torch.no_grad():
-        if synced:
-            for a in actions:
-                _sync(device)
-                t = time.perf_counter()
-                state = sim.step(state, a)
-                _sync(device)
-                times.append((time.perf_counter() - t) * 1e3)
-            out = statistics.median(times)
-        else:
+    if synced:
+        state, times = timed_steps(sim, state, actions, device)
+        out = statistics.median(times)
+    else:
+        with torch.no_grad():
             _sync(device)
             t = time.perf_counter()
             for a in actions:
                 state = sim.step(state, a)
             _sync(device)
-            out = (time.perf_counter() - t) * 1e3 / len(actions)
+        out = (time.perf_counter() - t) * 1e3 / len(actions)
     if not bool(torch.isfinite(state.positions[0]).all()):
         raise RuntimeError("non-finite state after the timed block")
     return out
@@ -193,16 +182,7 @@ def physics_step(device: str, n: int = 1500, steps: int = 20, warmup: int = 3, k
     tc = load_train_config(train_config)
     cfg = tc.model_config()
     sim, sp, state = _build(cfg, n, device, kind)
-    actions = _actions(sp, warmup + steps)
-    times = []
-    with torch.no_grad():
-        for i, a in enumerate(actions):
-            _sync(device)
-            t = time.perf_counter()
-            state = sim.step(state, a)
-            _sync(device)
-            if i >= warmup:
-                times.append((time.perf_counter() - t) * 1e3)
+    state, times = timed_steps(sim, state, _actions(sp, warmup + steps), device, warmup)
     if not bool(torch.isfinite(state.positions[0]).all()):
         raise RuntimeError("physics_step: non-finite state")
     return dict(train_config=train_config, model=cfg.name, effects=[s.instance_key for s in sim.effects.specs],

@@ -28,43 +28,48 @@ import time
 
 import torch
 
-__all__ = ["synthetic_task", "time_ranking", "main"]
+__all__ = ["wind_episodes", "synthetic_task", "time_ranking", "main"]
+
+
+def wind_episodes(sim, scene, accel, seeds, split: str, frames: int = 13, splats: int = 300) -> list:
+    """Synthetic observed episodes [EpisodeObs]: per seed a rope of ``splats`` in the air, rolled out
+    ``frames`` long by ``sim`` plus a direct wind ``accel`` (m/s^2), every 4th frame observed as
+    every 3rd splat with 3 mm of noise (as back-projected depth has)."""
+    from soma_ros.core.scenes import synthetic_rope
+    from trainer.discrepancy import EpisodeObs, _rollout
+
+    world = copy.deepcopy(sim)
+    world.add_effect({"name": "wind", "direct": True, "accel": list(accel)})
+    keep = list(range(4, frames, 4))
+    out = []
+    for s in seeds:
+        sp = synthetic_rope(splats, seed=s, center=(0.0, 0.0, 0.3))  # in the air: the wind moves it
+        world.init_state(sp, scene)
+        ob = EpisodeObs(f"e{s}", None, split, scene.dt, torch.full((frames, 4, 3), 3.0), torch.ones(frames), sp,
+                        keep, [])
+        g = torch.Generator().manual_seed(1000 + s)
+        with torch.no_grad():
+            ob.points = [st.means[::3] + 0.003 * torch.randn(st.means[::3].shape, generator=g)
+                         for _, st in _rollout(world, ob, scene, keep)]
+        out.append(ob)
+    return out
 
 
 def synthetic_task(episodes: int = 3, frames: int = 13, splats: int = 300, wind=(0.6, 0.0, 0.0)):
     """(model, fit, held-out, reference episodes, scene): the ``tiny_physics`` model bound to a
-    synthetic rope; ``episodes`` of each kind, ``frames`` long, every 4th frame observed."""
+    synthetic rope; ``episodes`` of each kind (:func:`wind_episodes`), the reference without wind."""
     from soma_ros.core.scenes import synthetic_rope
     from soma_ros.core.simulator import SceneContext, Simulator
     from trainer.config import load_train_config
-    from trainer.discrepancy import EpisodeObs, _rollout
 
     torch.manual_seed(0)
     scene = SceneContext.table()
     sim = Simulator(load_train_config("tiny_physics").model_config()).eval()
-    keep = list(range(4, frames, 4))
-
-    def make(accel, seeds, split):
-        world = copy.deepcopy(sim)
-        world.add_effect({"name": "wind", "direct": True, "accel": list(accel)})
-        out = []
-        for s in seeds:
-            sp = synthetic_rope(splats, seed=s, center=(0.0, 0.0, 0.3))
-            world.init_state(sp, scene)
-            ob = EpisodeObs(f"e{s}", None, split, scene.dt, torch.full((frames, 4, 3), 3.0), torch.ones(frames), sp,
-                            keep, [])
-            g = torch.Generator().manual_seed(1000 + s)
-            with torch.no_grad():
-                ob.points = [st.means[::3] + 0.003 * torch.randn(st.means[::3].shape, generator=g)
-                             for _, st in _rollout(world, ob, scene, keep)]
-            out.append(ob)
-        return out
-
     sim.init_state(synthetic_rope(splats, seed=1, center=(0.0, 0.0, 0.3)), scene)  # bind
     n = episodes
-    ref = make((0.0, 0.0, 0.0), range(1, 1 + n), "train")
-    fit = make(wind, range(100, 100 + n), "train")
-    held = make(wind, range(200, 200 + n), "test")
+    ref = wind_episodes(sim, scene, (0.0, 0.0, 0.0), range(1, 1 + n), "train", frames, splats)
+    fit = wind_episodes(sim, scene, wind, range(100, 100 + n), "train", frames, splats)
+    held = wind_episodes(sim, scene, wind, range(200, 200 + n), "test", frames, splats)
     return sim, fit, held, ref, scene
 
 

@@ -385,32 +385,19 @@ def test_calibration_on_the_models_own_conditions_separates_its_error_from_the_n
     control exists for). The observed points carry 3 mm of noise, as back-projected depth does:
     without it the calibrated model matches the world exactly, and relative gains on a residual
     near zero are fit noise (fractions of 0.24 from parameters equal to 0.02 m/s^2)."""
-    import copy
-
+    from benchmarks.discrepancy_jobs import wind_episodes
     from soma_ros.core.config import load_model_config
     from soma_ros.core.scenes import synthetic_rope
     from soma_ros.core.simulator import SceneContext, Simulator
-    from trainer.discrepancy import EpisodeObs, _rollout, rank_candidates, residual_per_frame
+    from trainer.discrepancy import rank_candidates, residual_per_frame
 
     torch.manual_seed(0)
     scene = SceneContext.table()
     sim = Simulator(load_model_config("cpu")).eval()
-    T, frames = 13, [4, 8, 12]
+    T = 13
 
     def episodes(accel, seeds, split):
-        world = copy.deepcopy(sim)
-        world.add_effect({"name": "wind", "direct": True, "accel": accel})
-        out = []
-        for s in seeds:
-            sp = synthetic_rope(300, seed=s, center=(0.0, 0.0, 0.3))  # in the air: the wind moves it
-            world.init_state(sp, scene)
-            ob = EpisodeObs(f"e{s}", None, split, scene.dt, torch.full((T, 4, 3), 3.0), torch.ones(T), sp, frames, [])
-            noise = torch.Generator().manual_seed(1000 + s)
-            with torch.no_grad():
-                ob.points = [st.means[::3] + 0.003 * torch.randn(st.means[::3].shape, generator=noise)
-                             for _, st in _rollout(world, ob, scene, frames)]
-            out.append(ob)
-        return out
+        return wind_episodes(sim, scene, accel, seeds, split, T)
 
     sim.init_state(synthetic_rope(300, seed=1, center=(0.0, 0.0, 0.3)), scene)  # bind
     a0, a01 = [0.0, 0.6, 0.0], [0.6, 0.6, 0.0]
