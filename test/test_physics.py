@@ -149,6 +149,41 @@ def _phys_sim(n=600, seed=0, **physics):
     return sim, splats
 
 
+def test_a_compliant_grip_lags_the_fingers_by_its_time_constant_and_stays_stable():
+    """gripper_slip's loosen g > 0 holds the grasped nodes by a critically damped spring of time
+    constant 0.05 s (e^(2 g) - 1): nearly the hard grip when tau is short (implicit, so even a
+    1e-4 s spring is stable), a load that sags further out of the rising fingers the longer tau,
+    and a grip that holds nothing when tau is far longer than the carry (the rope falls as if
+    released)."""
+    from soma_ros.core.physics import grip_time_constant
+
+    assert abs(float(grip_time_constant(torch.tensor(1.0))) - 0.05 * (2.718281828 ** 2 - 1)) < 1e-6
+    p = _params()
+    pts, m = _chain()
+    lay = build_layout(pts, m, UP, torch.tensor(0.0), p)
+    cp = _top_grip(lay)
+    up = torch.tensor([0.0, 0.0, 0.3])  # the fingers rise at 0.3 m/s for 20 steps (0.2 m)
+    fingers = cp.mean(dim=0) + 20 * DT * up
+
+    def run(g):
+        mods = None if g is None else PhysicsMods(grip=torch.tensor(g))
+        x = _run(lay, p, lay.rest.clone(), 20, cp, True, mods, up, trajectory=True)
+        assert bool(torch.isfinite(x).all())
+        return x
+
+    hard = run(None)
+    held = grasp_nodes(lay, lay.rest, cp, p).held
+    gap = {g: float((run(g)[-1, held] - hard[-1, held]).norm(dim=-1).max()) for g in (0.00005, 0.5, 1.0)}
+    assert gap[0.00005] < 0.005  # tau = 1e-5 s: the hard grip to 5 mm
+    assert gap[0.00005] < gap[0.5] < gap[1.0]  # longer tau: further from the fingers
+    lag = float((fingers[2] - run(1.0)[-1, held, 2]).mean())
+    assert 0.02 < lag  # tau 0.64 s: the held end trails the fingers by centimetres
+    # tau = 1.6e8 s: holds nothing -- the rope falls as one without a robot does
+    free = _run(lay, p, lay.rest.clone(), 20)
+    let_go = run(10.0)[-1]
+    assert float((let_go - free).norm(dim=-1).max()) < 0.005
+
+
 def test_in_the_simulator_rest_stays_exactly_at_rest_and_a_grasp_lifts_the_near_end_first():
     sim, splats = _phys_sim()
     scene = SceneContext.table()

@@ -27,7 +27,11 @@ gripper_slip        the grasp as a whole: while the gripper is closed on the obj
                     that transmits less of the gripper's motion (slips); sag* (fraction
                     of g): the held object slides down out of the grasp under its load.
                     Both act on the object's mean motion (the grasp moves the object,
-                    not only the splats between the fingers). [hold*, sag*, radius]
+                    not only the splats between the fingers). With a physics prior
+                    (:mod:`.physics`) these two do not act; loosen* does: > 0 the held
+                    object hangs in the fingers by a critically damped spring-damper
+                    of time constant 0.05 s (e^(2 loosen) - 1) (stiff at 0, lets go as it
+                    grows), < 0 a tighter grip. [hold*, sag*, radius, loosen*]
 mass_scale          extra weight of the lifted material: F = excess m g s(d),
                     s(d) = smoothstep((d - d0) / (d1 - d0)) = 0 on the table
                     (d <= d0, where the support carries any weight, so the rest
@@ -102,7 +106,9 @@ class TableFriction(Effect):
 class GripperSlip(Effect):
     """Extra velocity coupling and sag of the grasped object as a whole (module docstring)."""
 
-    fit_scale = {"loosen": 2.0}  # physics prior: 2.3 makes the grip 1000x more compliant and lets the material slide
+    # physics prior: loosen 0.5 / 1 / 1.5 = a grip of time constant 0.086 / 0.32 / 0.95 s, whose static sag is
+    # 7 cm / 1 m / 9 m (one grid point per half decade of the grips between stiff and holding nothing)
+    fit_scale = {"loosen": 0.5}
     prior_only = ("loosen",)
     force_only = ("hold", "sag")
 
@@ -111,7 +117,7 @@ class GripperSlip(Effect):
         hold: float = 0.0  # fraction per step
         sag: float = 0.0  # fraction of g
         radius: float = 0.03  # m
-        loosen: float = 0.0  # with a physics prior: the grip's compliance x e^(3 loosen), the held material slides
+        loosen: float = 0.0  # with a physics prior: > 0 a compliant grip (spring-damper, tau = 0.05 s (e^(2 loosen) - 1))
 
     def __init__(self, params, *, attr_dim: int = 0) -> None:
         super().__init__(params, attr_dim=attr_dim)

@@ -30,7 +30,15 @@ Model (per step t -> t+1, stateless: everything is read from the simulator's sta
   the gripper closes, the nodes within ``attach_radius`` of the control points' centroid are
   grasped, each held at its offset to that centroid (compliance ``grip_compliance``)
   until the gripper opens (:class:`Grasp`, carried in ``SimState.aux``); free nodes are pushed out
-  of ``contact_radius`` around every control point.
+  of ``contact_radius`` around every control point. A **compliant grip** (``PhysicsMods.grip`` =
+  g > 0, gripper_slip's ``loosen``) replaces the held nodes' hard constraint by a spring-damper
+  to their place in the fingers that carries the whole object: hanging rigidly in it, the object
+  would be a critically damped oscillator of time constant ``tau = GRIP_TAU0 (e^(2 g) - 1)``
+  (0.05 s x: g = 0.5 -> 0.086 s, 1 -> 0.32 s, 1.5 -> 0.95 s), its static sag g_0 tau^2 (7 cm,
+  1 m, 9 m). Solved implicitly per substep (stable for any tau): a grip from stiff (g -> 0, the
+  hard grip) through a soft one whose load sags out of the fingers as it is carried, to one that
+  holds nothing.
+  g < 0: a tighter grip (the compliance x e^(3 g)).
 * ``substeps`` per step. The nodes' displacement over the step gives a velocity change per
   node, carried to the splats by linear-blend skinning (``skin_neighbors`` nearest nodes); the
   term's force makes the fraction ``gain`` of it happen:
@@ -45,7 +53,7 @@ Learnable: log compliances (stretch, bending, grip), log damping, friction, the 
 Effect modifiers (:class:`PhysicsMods`, collected by :class:`~.effects.EffectSet` from the other
 terms' ``physics_modifier``): ``accel`` [3] (a uniform field, m/s^2), ``pressure`` [3] (the part of
 a field across a line's tangent or along a sheet's normal: wind on a rope or cloth), linear and
-quadratic drag, a friction change, the grip's log compliance factor, the mass excess (a heavier
+quadratic drag, a friction change, the grip's loosening (compliant grip, above), the mass excess (a heavier
 object: the same gravity, relatively softer constraints and grip), a log stiffness factor.
 """
 
@@ -62,7 +70,15 @@ from .config import ConfigError
 from .effects import Effect, EffectContext, register_effect
 from .spring_mass import farthest_point_sampling, neighbour_pairs, skin_weights
 
-__all__ = ["PhysicsMods", "PhysicsLayout", "PhysicsPrior", "Grasp", "build_layout", "grasp_nodes", "pbd_step"]
+__all__ = ["GRIP_TAU0", "grip_time_constant", "PhysicsMods", "PhysicsLayout", "PhysicsPrior", "Grasp", "build_layout", "grasp_nodes", "pbd_step"]
+
+
+GRIP_TAU0 = 0.05  # s: the compliant grip's time-constant scale (module docstring)
+
+
+def grip_time_constant(g: torch.Tensor) -> torch.Tensor:
+    """The compliant grip's time constant (s) for a loosening g > 0: ``GRIP_TAU0 (e^(2 g) - 1)``."""
+    return GRIP_TAU0 * torch.expm1(2.0 * g)
 
 
 @dataclass
@@ -75,7 +91,7 @@ class PhysicsMods:
     linear_drag: Optional[torch.Tensor] = None  # 1/s
     quadratic_drag: Optional[torch.Tensor] = None  # 1/m
     friction: Optional[torch.Tensor] = None  # added to the table's mu
-    grip: Optional[torch.Tensor] = None  # loosened grip: its compliance x exp(3 grip), and the held material slides
+    grip: Optional[torch.Tensor] = None  # > 0: a compliant grip, time constant GRIP_TAU0 (e^(2 grip) - 1); < 0: tighter
     mass: Optional[torch.Tensor] = None  # the object is (1 + mass) times heavier (> -0.9)
     stiffness: Optional[torch.Tensor] = None  # stretch and bending compliances / exp(stiffness)
 
@@ -215,9 +231,13 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
     ``coef``: the learnable coefficients as tensors (``stretch``, ``bend``, ``grip`` compliances,
     ``damping``, ``friction``); ``cp0`` / ``cp1`` [P, 3]: the control points at t and t+1 (None:
     no robot); ``grasp``: the nodes the closed fingers hold (:func:`grasp_nodes`; None: none). A
-    loosened grip (``mods.grip`` = g > 0: its compliance x e^(3 g)) lets the held material slide:
-    each held offset moves the fraction ``1 - exp(-(e^(3 g) - 1) / 1000)`` of the way to where the
-    node ended up. Differentiable in x, v, coef, mods and the grasp's offsets."""
+    loosened grip (``mods.grip`` = g > 0) holds them by a critically damped spring-damper of time
+    constant :func:`grip_time_constant` instead of the hard constraint: per substep, with the
+    held node's velocity u and position error e relative to the fingers (e = the error after the
+    substep if it moved with them), backward Euler gives u' = (u - h r w^2 e) / (1 + 2 h r w + h^2 r w^2),
+    w = 1/tau, r = the object's mass / the held nodes' mass (the spring carries the whole object:
+    hanging rigidly in it, the object is a critically damped oscillator of time constant tau).
+    Differentiable in x, v, coef, mods and the grasp's offsets."""
     mods = mods or PhysicsMods()
     h = float(dt) / p.substeps
     h2 = h * h
@@ -227,8 +247,16 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
         alpha = alpha / stiff
     w_inv = 1.0 / (1.0 + mods.mass.clamp_min(-0.9)) if mods.mass is not None else x.new_ones(())  # per unit mass
     a_grip = coef["grip"] / h2
-    if mods.grip is not None:
-        a_grip = a_grip * torch.exp(3.0 * mods.grip)
+    omega = None  # the compliant grip's 1/tau (None: the hard grip)
+    if mods.grip is not None and grasp is not None:
+        if float(mods.grip) > 0.0:
+            omega = 1.0 / grip_time_constant(mods.grip).clamp_min(1e-6)
+            # the spring holds the whole object: per unit of held mass its stiffness and damping are
+            # the object's mass / the held nodes' times those of a critically damped omega
+            held_mass = (lay.node_mass * grasp.held.to(lay.node_mass.dtype)).sum().clamp_min(1e-12)
+            load = lay.node_mass.sum() / held_mass
+        else:
+            a_grip = a_grip * torch.exp(3.0 * mods.grip)
     damp = torch.exp(-coef["damping"] * h)
     mu = coef["friction"].clamp_min(0.0)
     if mods.friction is not None:
@@ -252,6 +280,12 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
         if mods.quadratic_drag is not None:
             acc = acc - mods.quadratic_drag * v.norm(dim=-1, keepdim=True) * v
         v = (v + h * acc) * damp
+        if omega is not None:  # the compliant grip: implicit critically damped spring to the fingers
+            v_f = (cp1.mean(dim=0) - cp0.mean(dim=0)) / float(dt)  # [3] the fingers' velocity
+            u = v - v_f
+            e = x + h * v_f - (cps.mean(dim=0) + grasp.offset)
+            u1 = (u - (h * omega * omega * load) * e) / (1.0 + 2.0 * h * omega * load + h * h * omega * omega * load)
+            v = v + heldf * (v_f + u1 - v)
         q = x + h * v
         for _ in range(p.iterations):
             d = q[lay.sj] - q[lay.si]
@@ -260,7 +294,7 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
             corr = (lam / length)[:, None] * d
             dq = torch.zeros_like(q).index_add(0, lay.si, -corr).index_add(0, lay.sj, corr)
             q = q + w_inv * dq * inv_deg
-            if heldf is not None:
+            if heldf is not None and omega is None:
                 target = cps.mean(dim=0) + grasp.offset
                 q = q + heldf * (target - q) * (w_inv / (w_inv + a_grip))
         if cps is not None:  # control points push free nodes out of their contact radius
@@ -280,9 +314,6 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
             q = q - dxt * ((1.0 - keepf) * (depth > 0).to(q.dtype))[:, None]
         v = (q - x) / h
         x = q
-    if grasp is not None and mods.grip is not None:  # the loosened grip's material slides through the fingers
-        slip = (1.0 - torch.exp(-(torch.exp(3.0 * mods.grip) - 1.0) / 1000.0)).clamp_min(0.0)
-        grasp = Grasp(grasp.held, grasp.offset + slip * ((x - cp1.mean(dim=0)) - grasp.offset))
     return x, grasp
 
 
