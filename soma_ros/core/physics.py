@@ -236,7 +236,8 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
     held node's velocity u and position error e relative to the fingers (e = the error after the
     substep if it moved with them), backward Euler gives u' = (u - h r w^2 e) / (1 + 2 h r w + h^2 r w^2),
     w = 1/tau, r = the object's mass / the held nodes' mass (the spring carries the whole object:
-    hanging rigidly in it, the object is a critically damped oscillator of time constant tau).
+    hanging rigidly in it, the object is a critically damped oscillator of time constant tau;
+    ``mods.mass`` divides r by the mass factor: the same spring, a heavier load).
     Differentiable in x, v, coef, mods and the grasp's offsets."""
     mods = mods or PhysicsMods()
     h = float(dt) / p.substeps
@@ -254,7 +255,7 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
             # the spring holds the whole object: per unit of held mass its stiffness and damping are
             # the object's mass / the held nodes' times those of a critically damped omega
             held_mass = (lay.node_mass * grasp.held.to(lay.node_mass.dtype)).sum().clamp_min(1e-12)
-            load = lay.node_mass.sum() / held_mass
+            load = lay.node_mass.sum() / held_mass * w_inv  # a heavier object (mods.mass) sags more in it
         else:
             a_grip = a_grip * torch.exp(3.0 * mods.grip)
     damp = torch.exp(-coef["damping"] * h)
