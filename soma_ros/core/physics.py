@@ -250,7 +250,7 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
     a_grip = coef["grip"] / h2
     omega = None  # the compliant grip's 1/tau (None: the hard grip)
     if mods.grip is not None and grasp is not None:
-        if float(mods.grip) > 0.0:
+        if float(mods.grip.detach()) > 0.0:
             omega = 1.0 / grip_time_constant(mods.grip).clamp_min(1e-6)
             # the spring holds the whole object: per unit of held mass its stiffness and damping are
             # the object's mass / the held nodes' times those of a critically damped omega
