@@ -179,7 +179,8 @@ def test_a_compliant_grip_lags_the_fingers_by_its_time_constant_and_stays_stable
     soft = run(0.5)[-1, held, 2]
     lag = float((fingers[2] - soft).mean())
     assert 0.02 < lag  # tau 0.086 s: the held end trails the fingers by centimetres
-    heavy = _run(lay, p, lay.rest.clone(), 20, cp, True, PhysicsMods(grip=torch.tensor(0.5), mass=torch.tensor(2.0)), up)
+    heavier = PhysicsMods(grip=torch.tensor(0.5), mass=torch.tensor(2.0))
+    heavy = _run(lay, p, lay.rest.clone(), 20, cp, True, heavier, up)
     assert float(heavy[held, 2].mean()) < float(soft.mean()) - 0.01  # the same spring, 3x the load: lower
     # tau = 1.6e8 s: holds nothing -- the rope falls as one without a robot does
     free = _run(lay, p, lay.rest.clone(), 20)

@@ -117,7 +117,7 @@ class GripperSlip(Effect):
         hold: float = 0.0  # fraction per step
         sag: float = 0.0  # fraction of g
         radius: float = 0.03  # m
-        loosen: float = 0.0  # with a physics prior: > 0 a compliant grip (spring-damper, tau = 0.05 s (e^(2 loosen) - 1))
+        loosen: float = 0.0  # physics prior: > 0 a compliant grip (spring-damper, tau = 0.05 s (e^(2 loosen) - 1))
 
     def __init__(self, params, *, attr_dim: int = 0) -> None:
         super().__init__(params, attr_dim=attr_dim)

@@ -53,8 +53,8 @@ Learnable: log compliances (stretch, bending, grip), log damping, friction, the 
 Effect modifiers (:class:`PhysicsMods`, collected by :class:`~.effects.EffectSet` from the other
 terms' ``physics_modifier``): ``accel`` [3] (a uniform field, m/s^2), ``pressure`` [3] (the part of
 a field across a line's tangent or along a sheet's normal: wind on a rope or cloth), linear and
-quadratic drag, a friction change, the grip's loosening (compliant grip, above), the mass excess (a heavier
-object: the same gravity, relatively softer constraints and grip), a log stiffness factor.
+quadratic drag, a friction change, the grip's loosening (compliant grip, above), the mass excess
+(a heavier object: the same gravity, relatively softer constraints and grip), a log stiffness factor.
 """
 
 from __future__ import annotations
@@ -70,7 +70,8 @@ from .config import ConfigError
 from .effects import Effect, EffectContext, register_effect
 from .spring_mass import farthest_point_sampling, neighbour_pairs, skin_weights
 
-__all__ = ["GRIP_TAU0", "grip_time_constant", "PhysicsMods", "PhysicsLayout", "PhysicsPrior", "Grasp", "build_layout", "grasp_nodes", "pbd_step"]
+__all__ = ["GRIP_TAU0", "grip_time_constant", "PhysicsMods", "PhysicsLayout", "PhysicsPrior", "Grasp", "build_layout",
+           "grasp_nodes", "pbd_step"]
 
 
 GRIP_TAU0 = 0.05  # s: the compliant grip's time-constant scale (module docstring)
