@@ -57,7 +57,7 @@ def test_table_friction_opposes_tangential_velocity_only_in_contact():
     eff = build_effect({"name": "table_friction", "params": {"mu": 0.5}})
     pos = torch.tensor([[0.0, 0.0, 0.002], [0.1, 0.0, 0.002], [0.2, 0.0, 0.1]])
     vel = torch.tensor([[0.3, -0.2, 0.0], [0.0, 0.0, 0.4], [0.3, 0.0, 0.0]])
-    f = eff(_ctx(pos, vel))
+    f = eff(_ctx(pos, vel)).detach()
     assert float(f[0] @ vel[0]) < 0 and abs(float(f[0, 2])) < 1e-9  # opposes sliding, tangential
     assert torch.allclose(f[1], torch.zeros(3), atol=1e-9)  # normal motion: no friction
     assert torch.allclose(f[2], torch.zeros(3))  # above the contact band
@@ -65,7 +65,7 @@ def test_table_friction_opposes_tangential_velocity_only_in_contact():
     assert abs(float(f[0].norm()) - 0.5 * 0.01 * 9.81) < 0.1 * 0.5 * 0.01 * 9.81
     # signed: mu < 0 pushes along the velocity (a table more slippery than the model believes)
     eff2 = build_effect({"name": "table_friction", "params": {"mu": -0.5}})
-    assert float(eff2(_ctx(pos, vel))[0] @ vel[0]) > 0
+    assert float(eff2(_ctx(pos, vel)).detach()[0] @ vel[0]) > 0
 
 
 def test_gripper_slip_acts_on_the_held_object_as_a_whole_only_when_closed():
@@ -78,7 +78,7 @@ def test_gripper_slip_acts_on_the_held_object_as_a_whole_only_when_closed():
     want = 0.01 * 0.2 * (0.5 - 0.2) * 30.0
     torch.testing.assert_close(f, torch.tensor([0.0, 0.0, want]).expand(3, 3))
     slip = build_effect({"name": "gripper_slip", "params": {"hold": -0.2}})(ctx)
-    assert float(slip[2, 2]) < 0  # < 0: the object lags the lifting gripper
+    assert float(slip[2, 2].detach()) < 0  # < 0: the object lags the lifting gripper
     # sag: the held object slides down, s-weighted (half closed: s = 0.5)
     sag = build_effect({"name": "gripper_slip", "params": {"sag": 0.5}})(_ctx(pos, vel, cp, cpv, 0.5))
     torch.testing.assert_close(sag, (0.01 * 0.5 * 0.5 * G).expand(3, 3))

@@ -174,7 +174,7 @@ def test_robot_coupling_form_is_physical_invariant_and_learnable():
     assert torch.allclose(eff(c2), eff(c1) @ R.T, atol=1e-7)
     # bounded: per splat at most (|dv| / dt + accel_scale) x mass, however many control points
     many = _ctx(cp=torch.rand(30, 3) * 0.1, cpv=torch.ones(30, 3) * 0.2, grip=0.0)
-    amax = (eff(many) / many.masses[:, None]).norm(dim=-1).max()
+    amax = (eff(many) / many.masses[:, None]).norm(dim=-1).max().detach()
     assert float(amax) <= 0.2 * 3 ** 0.5 * 30 + 9.81 + 1e-4
     # gradients reach every parameter; bad parameters fail clearly
     eff(c1).square().sum().backward()
