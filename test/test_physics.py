@@ -7,7 +7,7 @@ import torch
 
 from soma_ros.core.config import ConfigError, EffectSpec, load_model_config
 from soma_ros.core.effects import EffectContext, build_effect, build_effects
-from soma_ros.core.physics import PhysicsMods, PhysicsPrior, build_layout, grasp_nodes, pbd_step
+from soma_ros.core.physics import PhysicsMods, PhysicsPrior, build_layout, grasp_nodes, grip_time_constant, pbd_step
 from soma_ros.core.scenes import synthetic_rope
 from soma_ros.core.simulator import RobotAction, SceneContext, Simulator
 
@@ -155,8 +155,6 @@ def test_a_compliant_grip_lags_the_fingers_by_its_time_constant_and_stays_stable
     1e-4 s spring is stable), a load that sags further out of the rising fingers the longer tau,
     and a grip that holds nothing when tau is far longer than the carry (the rope falls as if
     released)."""
-    from soma_ros.core.physics import grip_time_constant
-
     assert abs(float(grip_time_constant(torch.tensor(1.0))) - 0.05 * (2.718281828 ** 2 - 1)) < 1e-6
     p = _params()
     pts, m = _chain()

@@ -249,6 +249,8 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
         alpha = alpha / stiff
     w_inv = 1.0 / (1.0 + mods.mass.clamp_min(-0.9)) if mods.mass is not None else x.new_ones(())  # per unit mass
     a_grip = coef["grip"] / h2
+    if grasp is not None and cp0 is None:
+        raise ValueError("pbd_step: a grasp needs the control points")
     omega = None  # the compliant grip's 1/tau (None: the hard grip)
     if mods.grip is not None and grasp is not None:
         if float(mods.grip.detach()) > 0.0:
@@ -257,6 +259,9 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
             # the object's mass / the held nodes' times those of a critically damped omega
             held_mass = (lay.node_mass * grasp.held.to(lay.node_mass.dtype)).sum().clamp_min(1e-12)
             load = lay.node_mass.sum() / held_mass * w_inv  # a heavier object (mods.mass) sags more in it
+            grip_k = h * omega * omega * load  # the backward-Euler update's constants (docstring)
+            grip_den = 1.0 + 2.0 * h * omega * load + h * grip_k
+            v_f = (cp1.mean(dim=0) - cp0.mean(dim=0)) / float(dt)  # [3] the fingers' velocity
         else:
             a_grip = a_grip * torch.exp(3.0 * mods.grip)
     damp = torch.exp(-coef["damping"] * h)
@@ -269,8 +274,6 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
     nrm = plane_normal.to(x.dtype)
     off = plane_offset.to(x.dtype)
     inv_deg = (p.relaxation / lay.degree.clamp_min(1.0))[:, None]
-    if grasp is not None and cp0 is None:
-        raise ValueError("pbd_step: a grasp needs the control points")
     heldf = grasp.held.to(x.dtype)[:, None] if grasp is not None else None
     for s in range(p.substeps):
         cps = None if cp0 is None else cp0 + ((s + 1) / p.substeps) * (cp1 - cp0)
@@ -283,10 +286,8 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
             acc = acc - mods.quadratic_drag * v.norm(dim=-1, keepdim=True) * v
         v = (v + h * acc) * damp
         if omega is not None:  # the compliant grip: implicit critically damped spring to the fingers
-            v_f = (cp1.mean(dim=0) - cp0.mean(dim=0)) / float(dt)  # [3] the fingers' velocity
-            u = v - v_f
             e = x + h * v_f - (cps.mean(dim=0) + grasp.offset)
-            u1 = (u - (h * omega * omega * load) * e) / (1.0 + 2.0 * h * omega * load + h * h * omega * omega * load)
+            u1 = ((v - v_f) - grip_k * e) / grip_den
             v = v + heldf * (v_f + u1 - v)
         q = x + h * v
         for _ in range(p.iterations):
