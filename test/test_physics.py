@@ -299,3 +299,75 @@ def test_the_live_engine_runs_a_physics_model_exact_at_rest_and_lifts_a_grasped_
     assert torch.isfinite(x).all()
     near = (m[:, 0] - g[0]).abs() < 0.01
     assert float((x[near, 2] - m[near, 2]).mean()) > 0.05
+
+
+def _lifted_bar(p, lift=0.2, steps=45):
+    """A horizontal rope (0.35 m, table at z = 0) grasped at its middle and lifted by ``lift``
+    over 30 steps, then held: the node positions at the end."""
+    n = 400
+    pts = torch.zeros(n, 3)
+    pts[:, 0] = torch.linspace(0.0, 0.35, n)
+    pts[:, 2] = 0.006
+    lay = build_layout(pts, torch.full((n,), 0.05 / n), UP, torch.tensor(0.0), p)
+    c = torch.tensor([0.175, 0.0, 0.006])
+    cp = torch.stack([c + torch.tensor([0.0, 0.01, 0.0]), c - torch.tensor([0.0, 0.01, 0.0])])
+    coef = _coef(p)
+    x, v, grasp = lay.rest.clone(), torch.zeros(lay.num_nodes, 3), None
+    for t in range(steps):
+        cp0 = cp + torch.tensor([0.0, 0.0, lift * min(t / 30, 1.0)])
+        cp1 = cp + torch.tensor([0.0, 0.0, lift * min((t + 1) / 30, 1.0)])
+        grasp = grasp or grasp_nodes(lay, x, cp0, p)
+        with torch.no_grad():
+            x1, grasp = pbd_step(lay, x, v, G, UP, torch.tensor(0.0), DT, p, coef, cp0, cp1, grasp)
+        v, x = (x1 - x) / DT, x1
+    return x
+
+
+def _droop(x):
+    """How far the rope's ends hang below its highest node (m)."""
+    return float(x[:, 2].max() - x[x[:, 0].argsort()[[0, -1]], 2].mean())
+
+
+def test_the_newton_solver_makes_a_stiff_rope_stiff_and_its_bending_compliance_matter():
+    """Jacobi passes stop short of the constraints: a stiff rope lifted at its middle droops by
+    what the passes allow, and more passes make it stiffer. The Gauss-Newton solve converges in one
+    step: its droop is what many passes approach, and the bending compliance then sets it."""
+    jac = {it: _droop(_lifted_bar(_params(num_nodes=48, substeps=16, iterations=it))) for it in (10, 80)}
+    new1 = _droop(_lifted_bar(_params(num_nodes=48, substeps=16, solver="newton", newton_iterations=1)))
+    new3 = _droop(_lifted_bar(_params(num_nodes=48, substeps=16, solver="newton", newton_iterations=3)))
+    assert jac[80] < 0.8 * jac[10]  # the passes, not the compliance, set the Jacobi rope's stiffness
+    assert new1 < jac[80] < jac[10]  # the converged rope is stiffer than any of them
+    assert abs(new1 - new3) < 0.002  # one Gauss-Newton step per substep has converged
+    soft = [_droop(_lifted_bar(_params(num_nodes=48, substeps=16, solver="newton", bend_compliance=c)))
+            for c in (1e-8, 1e-6, 1e-4)]
+    assert soft[0] + 0.02 < soft[1] and soft[1] + 0.02 < soft[2]  # softer bending, lower ends
+    assert all(0.0 < d < 0.2 for d in soft)  # hangs, never falls below the table
+
+
+def test_the_newton_solver_holds_the_grasp_passes_gradients_and_rejects_bad_settings():
+    p = _params(solver="newton")
+    pts, m = _chain()
+    lay = build_layout(pts, m, UP, torch.tensor(0.0), p)
+    cp = _top_grip(lay)
+    up = torch.tensor([0.0, 0.0, 0.3])
+    x = _run(lay, p, lay.rest.clone(), 20, cp, True, None, up)
+    top = x[lay.rest[:, 2].argmax()]
+    assert abs(float(top[2] - lay.rest[:, 2].max()) - 0.3 * 20 * DT) < 0.005  # the held top rose with the fingers
+    d = (x[lay.sj] - x[lay.si]).norm(dim=-1)
+    assert float(((d - lay.rest_len) / lay.rest_len).abs().max()) < 0.02  # inextensible
+    sim, splats = _phys_sim(n=300, solver="newton")
+    sim.add_effect({"name": "wind", "direct": True, "form": "field"})
+    for q in sim.parameters():
+        q.requires_grad_(False)
+    sim.effects["wind"].accel.requires_grad_(True)
+    s = sim.init_state(splats, SceneContext.table())
+    end = splats.means[splats.means[:, 0].argmin()]
+    c2 = torch.stack([end + torch.tensor([0.0, 0.004, 0.0]), end - torch.tensor([0.0, 0.004, 0.0])])
+    for t in range(8):
+        s = sim.step(s, RobotAction(c2 + torch.tensor([0.0, 0.0, 0.01 * t]), 0.0))
+    s.means[:, 1].mean().backward()
+    g = sim.effects["wind"].accel.grad
+    assert g is not None and torch.isfinite(g).all() and float(g[1]) > 0
+    for bad in ({"solver": "gauss"}, {"solver": "newton", "newton_iterations": 0}):
+        with pytest.raises(ConfigError, match="solver"):
+            PhysicsPrior(_params(**bad))

@@ -21,6 +21,7 @@ the fixtures about a minute more.
 from __future__ import annotations
 
 import csv
+import math
 import json
 import os
 import signal
@@ -395,3 +396,56 @@ def test_keep_best_points_keeps_the_lowest_validation_point_distance(lift_datase
     s2 = train(load_train_config("tiny", over2), lift_dataset, run, log=lambda *a, **k: logs.append(a[0]))
     assert any("run.keep changed to best" in m for m in logs), logs
     assert s2["best_iteration"] == s2["total_iterations"] == 5 and s2["kept"] == "best"
+
+
+def test_identify_sets_the_physics_priors_coefficient_with_the_lowest_score(lift_dataset, tmp_path):
+    """``identify``: before training, the physics prior's bending compliance is set to each grid
+    value, the untrained model is scored on training episodes (never the validation one) and the
+    lowest validation-style score is kept; the run starts from it and records the table."""
+    import math
+
+    from soma_ros.core.checkpoint import read_checkpoint
+    from trainer.config import ConfigError, load_train_config
+    from trainer.train import train
+
+    for bad in ({"coefficient": "youngs"}, {"values": [1e-8, -1.0]}, {"episodes": 0}):
+        with pytest.raises(ConfigError, match="identify"):
+            load_train_config("tiny_physics", {"identify": bad})
+    over = {"scene": {"photometric_iters": 3, "num_splats": 400},
+            "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 1, "stride": 2, "length_start": 2},
+                         "stage2": {"epochs": 0, "window": 3}},
+            "run": {"val_episodes": 1, "val_frame_stride": 6},
+            "identify": {"coefficient": "bend", "values": [1e-8, 1e-2], "episodes": 2}}
+    run = tmp_path / "run"
+    logs: list = []
+    s = train(load_train_config("tiny_physics", over), lift_dataset, run, max_iterations=0,
+              log=lambda *a, **k: logs.append(a[0]))
+    ident = json.loads((run / "identify.json").read_text())
+    assert s["identified"] == ident and ident["criterion"] == "val_loss"
+    assert [r["value"] for r in ident["rows"]] == [1e-8, 1e-2]
+    losses = [r["val_loss"] for r in ident["rows"]]
+    assert losses[0] != losses[1]  # the stiffness changes the rollouts
+    assert ident["chosen"] == ident["rows"][losses.index(min(losses))]["value"]
+    assert not set(ident["episodes"]) & set(s["val_episodes"]) and len(ident["episodes"]) == 2
+    sd = read_checkpoint(run / "checkpoint.pt")["state_dict"]
+    assert float(sd["effects.terms.physics.log_bend"]) == pytest.approx(math.log(ident["chosen"]), rel=1e-6)
+    assert any(m.startswith("identify: bend = ") for m in logs), logs
+    with pytest.raises(ValueError, match="exactly one effect 'physics'"):
+        train(load_train_config("tiny", {**over, "run": {"val_episodes": 1}}), lift_dataset, tmp_path / "run2",
+              max_iterations=0, log=lambda *a, **k: None)
+
+
+def test_a_non_finite_gradient_skips_the_step_and_keeps_the_weights():
+    from trainer.train import clipped_step
+
+    w = torch.nn.Parameter(torch.tensor([1.0, 2.0]))
+    opt = torch.optim.Adam([w], lr=0.1)
+    (w * torch.tensor([1.0, float("inf")])).sum().backward()
+    gn, stepped = clipped_step(opt, [w], 1.0)
+    assert not stepped and not math.isfinite(gn) and w.grad is None
+    assert torch.equal(w.detach(), torch.tensor([1.0, 2.0]))  # untouched, and Adam's state too
+    assert not opt.state
+    (w * torch.tensor([3.0, 4.0])).sum().backward()
+    gn, stepped = clipped_step(opt, [w], 1.0)
+    assert stepped and gn == pytest.approx(5.0) and bool(torch.isfinite(w).all())
+    assert float(w[0]) < 1.0 and float(w[1]) < 2.0

@@ -326,6 +326,37 @@ class RunConfig:
             raise ConfigError(f"{where}.keep: one of {', '.join(KEEP)}; got {self.keep!r}")
 
 
+IDENTIFY_COEFFICIENTS = ("stretch", "bend", "grip", "damping", "friction")
+
+
+@dataclass
+class IdentifyConfig:
+    """System identification of the physics prior (effect ``physics``) before training: the
+    prior's ``coefficient`` (``bend`` compliance by default: how stiff the material is) is set to
+    each of ``values`` in turn, the untrained model is rolled out on ``episodes`` training episodes
+    (evenly spaced; never the validation ones) and scored like a validation (``run.keep``'s
+    criterion: validation loss, or point distance for ``best_points``), and training starts from
+    the best value. Empty ``values``: off (the config's value stays). Compliances and damping are
+    > 0 (s^2/m, 1/s), friction >= 0."""
+
+    coefficient: str = "bend"
+    values: list = field(default_factory=list)
+    episodes: int = 3
+
+    def validate(self, where: str = "identify") -> None:
+        if self.coefficient not in IDENTIFY_COEFFICIENTS:
+            raise ConfigError(f"{where}.coefficient: one of {', '.join(IDENTIFY_COEFFICIENTS)}; got {self.coefficient!r}")
+        if self.episodes < 1:
+            raise ConfigError(f"{where}.episodes: must be >= 1, got {self.episodes}")
+        try:
+            vals = [float(v) for v in self.values]
+        except (TypeError, ValueError):
+            raise ConfigError(f"{where}.values: a list of numbers, got {self.values!r}") from None
+        if any(not math.isfinite(v) or v < 0 or (v == 0 and self.coefficient != "friction") for v in vals):
+            raise ConfigError(f"{where}.values: finite, > 0 (friction: >= 0); got {self.values!r}")
+        self.values = vals
+
+
 @dataclass
 class TrainConfig:
     """A whole training run (see module docstring)."""
@@ -343,6 +374,7 @@ class TrainConfig:
     schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     run: RunConfig = field(default_factory=RunConfig)
+    identify: IdentifyConfig = field(default_factory=IdentifyConfig)
 
     def validate(self) -> "TrainConfig":
         if self.device not in ("auto", "cpu", "cuda"):
@@ -353,6 +385,7 @@ class TrainConfig:
         self.schedule.validate()
         self.optim.validate()
         self.run.validate()
+        self.identify.validate()
         return self
 
     def to_dict(self) -> dict:

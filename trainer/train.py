@@ -237,6 +237,22 @@ def rest_reach(sim: Simulator, margin: float = 0.01) -> Optional[float]:
     return max(sim.effects[k].robot_reach() for k in robot_keys) + margin
 
 
+MAX_SKIPPED_IN_A_ROW = 5
+
+
+def clipped_step(opt: torch.optim.Optimizer, params, clip: float) -> tuple[float, bool]:
+    """Clip the gradients' total norm to ``clip`` and take the optimiser step; returns (the norm
+    before clipping, whether the step was taken). A non-finite gradient (a backward that
+    overflowed through a long, stiff rollout) is dropped and the weights are kept: clipping cannot
+    repair it, and one Adam step with it would make every weight NaN."""
+    gn = float(torch.nn.utils.clip_grad_norm_(list(params), clip))
+    if not math.isfinite(gn):
+        opt.zero_grad(set_to_none=True)
+        return gn, False
+    opt.step()
+    return gn, True
+
+
 def lr_at(cfg: TrainConfig, it: int) -> float:
     o = cfg.optim
     total = max(1, cfg.schedule.total_iters)
@@ -531,6 +547,39 @@ def validate(sim: Simulator, store: EpisodeStore, names: Sequence[str], cfg: Tra
             "follow": (follow_sum / follow_n) if follow_n else float("nan"), "frames": int(cnt)}
 
 
+_IDENTIFY_ATTR = {"stretch": "log_stretch", "bend": "log_bend", "grip": "log_grip", "damping": "log_damping",
+                  "friction": "friction"}
+
+
+@torch.no_grad()
+def identify_prior(sim: Simulator, store: EpisodeStore, names: Sequence[str], cfg: TrainConfig, criterion: str,
+                   dist: Optional[DistInfo] = None, say=print) -> dict:
+    """System identification before training (:class:`~trainer.config.IdentifyConfig`): score the
+    untrained model with the physics prior's coefficient at each grid value on ``names`` (training
+    episodes) like a validation, set the best (``criterion``: ``val_loss`` or ``points``; ties keep
+    the earlier value) and return ``{coefficient, criterion, episodes, chosen, rows}``."""
+    from soma_ros.core.physics import PhysicsPrior
+
+    ic = cfg.identify
+    terms = [sim.effects[k] for k in sim.effects.keys() if isinstance(sim.effects[k], PhysicsPrior)]
+    if len(terms) != 1:
+        raise ValueError(f"identify: needs exactly one effect 'physics' in the model, found {len(terms)}")
+    param = getattr(terms[0], _IDENTIFY_ATTR[ic.coefficient])
+    log = ic.coefficient != "friction"
+    rows: list[dict] = []
+    for v in ic.values:
+        param.fill_(math.log(v) if log else v)
+        r = validate(sim, store, names, cfg, dist)
+        rows.append({"value": v, **{k: float(r[k]) for k in ("val_loss", "img", "points", "follow")}})
+        say(f"identify {ic.coefficient} = {v:g}: val_loss {r['val_loss']:.5f}, points {1e3 * r['points']:.2f} mm")
+    scores = [r[criterion] if math.isfinite(r[criterion]) else math.inf for r in rows]
+    best = rows[int(np.argmin(scores))]
+    param.fill_(math.log(best["value"]) if log else best["value"])
+    say(f"identify: {ic.coefficient} = {best['value']:g} (lowest {criterion} on {len(names)} training episodes)")
+    return {"coefficient": ic.coefficient, "criterion": criterion, "episodes": list(names), "chosen": best["value"],
+            "rows": rows}
+
+
 def _point_distance(means: torch.Tensor, points: torch.Tensor) -> float:
     if len(points) == 0:
         return 0.0
@@ -800,6 +849,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
                    "best_val": best_val, "best_score": best_score, "best_criterion": crit,
                    "first_val": first_val, "last_val": last_val, "resumed_from": resumed_from,
                    "val_history": val_history, "best_iteration": best_iteration, "best_model": best_state,
+                   "identified": identified,
                    "weights_checksum": _weights_checksum(sim)}
         _atomic_torch_save(payload, state_path)
         info = stage_at(cfg, min(epoch, cfg.schedule.epochs - 1))
@@ -842,6 +892,13 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
                        points=v["points"], seconds=time.time() - t0, follow=v["follow"])
             runlog.plot(out_dir / "loss.png", f"{cfg.name}: {len(train_names)} train / {len(val_names)} val episodes")
 
+    identified = resume.get("identified") if resume is not None else None
+    if start_it == 0 and first_val is None and cfg.identify.values:
+        k = min(cfg.identify.episodes, len(train_names))
+        picks = [train_names[int(i)] for i in np.unique(np.linspace(0, len(train_names) - 1, k).round().astype(int))]
+        identified = identify_prior(sim, store, picks, cfg, crit, dist, say)
+        if dist.is_main:
+            _atomic_write_text(out_dir / "identify.json", json.dumps(identified, indent=1))
     if start_it == 0 and first_val is None:
         run_validation(0, 0)
         if first_val is not None:
@@ -857,6 +914,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         bar = tqdm(total=stop, initial=start_it, desc="soma train", unit="it", dynamic_ncols=True)
     it = start_it
     used_episodes: list[str] = []
+    skipped: list[int] = []  # iterations whose gradient was not finite (no step taken)
     while it < stop:
         epoch = it // ipe
         info = stage_at(cfg, epoch)
@@ -876,8 +934,15 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
             raise RuntimeError(f"iteration {it}: the loss is not finite ({float(loss)}) on episode {name}")
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        gn = float(torch.nn.utils.clip_grad_norm_(sim.parameters(), cfg.optim.grad_clip))
-        opt.step()
+        gn, stepped = clipped_step(opt, sim.parameters(), cfg.optim.grad_clip)
+        if not stepped:
+            skipped.append(it)
+            say(f"iteration {it}: non-finite gradient on episode {name} (loss {float(loss.detach()):.4f}): "
+                "step skipped, weights kept")
+            if len(skipped) >= MAX_SKIPPED_IN_A_ROW and skipped[-MAX_SKIPPED_IN_A_ROW:] == list(
+                    range(it - MAX_SKIPPED_IN_A_ROW + 1, it + 1)):
+                raise RuntimeError(f"iterations {skipped[-MAX_SKIPPED_IN_A_ROW:]}: {MAX_SKIPPED_IN_A_ROW} non-finite "
+                                   "gradients in a row; lower optim.lr or optim.grad_clip")
         it += 1
         dtime = time.time() - t0
         if runlog is not None:
@@ -901,7 +966,8 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
                "world_size": dist.world, "val_loss_untrained": first_val, "val_loss": last_val,
                "val_history": val_history,
                "best_val_loss": best_val, "best_iteration": best_iteration, "kept": cfg.run.keep, "kept_score": best_score, "resumed_from": resumed_from, "seconds": round(time.time() - t_start, 1),
-               "train_episodes": train_names, "val_episodes": val_names}
+               "train_episodes": train_names, "val_episodes": val_names, "identified": identified,
+               "skipped_iterations": skipped}
     if dist.distributed:  # what each replica ends with: identical weights, its own episodes
         (out_dir / "dist").mkdir(exist_ok=True)
         _atomic_write_text(out_dir / "dist" / f"rank_{dist.rank}.json", json.dumps(

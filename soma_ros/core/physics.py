@@ -290,7 +290,12 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
             u1 = ((v - v_f) - grip_k * e) / grip_den
             v = v + heldf * (v_f + u1 - v)
         q = x + h * v
-        for _ in range(p.iterations):
+        if p.solver == "newton":
+            hold = None
+            if heldf is not None and omega is None:
+                hold = (heldf[:, 0] / a_grip, cps.mean(dim=0) + grasp.offset)
+            q = _newton_project(lay, q, alpha, w_inv, hold, p.newton_iterations)
+        for _ in range(p.iterations if p.solver == "jacobi" else 0):
             d = q[lay.sj] - q[lay.si]
             length = d.norm(dim=-1).clamp_min(1e-9)
             lam = -(length - lay.rest_len) / (2.0 * w_inv + alpha)  # [E]
@@ -320,6 +325,49 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
     return x, grasp
 
 
+def _newton_project(lay: PhysicsLayout, q: torch.Tensor, alpha: torch.Tensor, w_inv: torch.Tensor,
+                    hold: Optional[tuple[torch.Tensor, torch.Tensor]], iterations: int) -> torch.Tensor:
+    """The constraint projection of a substep solved by Gauss-Newton on the whole node system
+    (``solver: newton``), instead of Jacobi passes whose count, not the compliances, sets how stiff
+    a long object can be. Minimises, from the inertial prediction q [K, 3],
+    ``|q' - q|^2 / (2 w_inv) + sum_e C_e(q')^2 / (2 alpha_e) [+ sum_held k_i |q'_i - target_i|^2 / 2]``
+    (C_e = length - rest length; the same energy the Jacobi passes descend) with ``iterations``
+    dense steps (3K x 3K, Cholesky, float64). ``hold``: (k [K] per node, target [K, 3]), the hard grip
+    as the stiff penalty the Jacobi passes apply (k = 1 / a_grip on held nodes, 0 elsewhere).
+    Differentiable in q, alpha, w_inv and the hold."""
+    K = q.shape[0]
+    si, sj = lay.si, lay.sj
+    f64 = torch.float64
+    q0 = q.to(f64)
+    qd = q0
+    kk = (1.0 / alpha).to(f64)  # [E]
+    m = (1.0 / w_inv).to(f64)
+    eye = torch.eye(3 * K, dtype=f64, device=q.device)
+    hk = ht = None
+    if hold is not None:
+        hk, ht = hold[0].to(f64), hold[1].to(f64)
+    for _ in range(iterations):
+        d = qd[sj] - qd[si]
+        length = d.norm(dim=-1).clamp_min(1e-12)
+        n = d / length[:, None]
+        c = length - lay.rest_len.to(f64)
+        blk = kk[:, None, None] * n[:, :, None] * n[:, None, :]  # [E, 3, 3]
+        hb = qd.new_zeros(K, K, 3, 3)
+        hb = hb.index_put((si, si), blk, accumulate=True).index_put((sj, sj), blk, accumulate=True)
+        hb = hb.index_put((si, sj), -blk, accumulate=True).index_put((sj, si), -blk, accumulate=True)
+        diag = m.expand(K).clone()
+        ge = (kk * c)[:, None] * n  # dE/dq_j of each constraint (-that for q_i)
+        g = m * (qd - q0)
+        g = g.index_add(0, sj, ge).index_add(0, si, -ge)
+        if hk is not None:
+            diag = diag + hk
+            g = g + hk[:, None] * (qd - ht)
+        hmat = hb.permute(0, 2, 1, 3).reshape(3 * K, 3 * K) + eye * diag.repeat_interleave(3)
+        step = torch.cholesky_solve(-g.reshape(-1, 1), torch.linalg.cholesky(hmat))
+        qd = qd + step.reshape(K, 3)
+    return qd.to(q.dtype)
+
+
 @register_effect("physics")
 class PhysicsPrior(Effect):
     """The physics prior (module docstring). Needs the episode's initial splats
@@ -336,7 +384,9 @@ class PhysicsPrior(Effect):
         bend_radius_factor: float = 16.0
         skin_neighbors: int = 4
         substeps: int = 16
-        iterations: int = 10  # Jacobi constraint passes per substep
+        iterations: int = 10  # Jacobi constraint passes per substep (solver: jacobi)
+        solver: str = "jacobi"  # or "newton": a Gauss-Newton solve of the whole node system per substep
+        newton_iterations: int = 2  # Gauss-Newton steps per substep (solver: newton)
         relaxation: float = 1.5
         attach_radius: float = 0.02  # m around the control points' centroid
         contact_radius: float = 0.006  # m around each control point
@@ -362,6 +412,9 @@ class PhysicsPrior(Effect):
                      "stretch_compliance", "bend_compliance", "grip_compliance", "damping"):
             if not getattr(p, name) > 0:
                 raise ConfigError(f"effect physics: {name} must be > 0, got {getattr(p, name)}")
+        if p.solver not in ("jacobi", "newton") or p.newton_iterations < 1:
+            raise ConfigError(f"effect physics: solver must be 'jacobi' or 'newton' and newton_iterations >= 1, "
+                              f"got {p.solver!r}, {p.newton_iterations}")
         if not 0.0 < p.relaxation < 2.0 or not 0.0 < p.gain < 1.0 or not 0.0 < p.grip_threshold < 1.0:
             raise ConfigError("effect physics: relaxation in (0, 2), gain and grip_threshold in (0, 1) required")
         if not 0.0 <= p.friction < 5.0 or p.contact_offset_max < 0:
