@@ -410,7 +410,7 @@ def test_identify_sets_the_physics_priors_coefficient_with_the_lowest_score(lift
 
     for bad in ({"coefficient": "youngs"}, {"values": [1e-8, -1.0]}, {"episodes": 0}):
         with pytest.raises(ConfigError, match="identify"):
-            load_train_config("tiny_physics", {"identify": bad})
+            load_train_config("tiny_physics_newton", {"identify": bad})
     over = {"scene": {"photometric_iters": 3, "num_splats": 400},
             "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 1, "stride": 2, "length_start": 2},
                          "stage2": {"epochs": 0, "window": 3}},
@@ -418,7 +418,7 @@ def test_identify_sets_the_physics_priors_coefficient_with_the_lowest_score(lift
             "identify": {"coefficient": "bend", "values": [1e-8, 1e-2], "episodes": 2}}
     run = tmp_path / "run"
     logs: list = []
-    s = train(load_train_config("tiny_physics", over), lift_dataset, run, max_iterations=0,
+    s = train(load_train_config("tiny_physics_newton", over), lift_dataset, run, max_iterations=0,
               log=lambda *a, **k: logs.append(a[0]))
     ident = json.loads((run / "identify.json").read_text())
     assert s["identified"] == ident and ident["criterion"] == "val_loss"

@@ -20,7 +20,10 @@ Model (per step t -> t+1, stateless: everything is read from the simulator's sta
   ``neighbors`` within ``spring_radius_factor`` x the median node spacing, bending to the next
   ``bend_neighbors`` out to ``bend_radius_factor`` x spacing; solved by ``iterations``
   over-relaxed Jacobi passes per substep with per-constraint compliances (XPBD form, per unit
-  rest length). Long bending pairs make a rope or cloth as stiff as its data says.
+  rest length), or (``solver: newton``) by ``newton_iterations`` Gauss-Newton steps on the whole
+  node system (:func:`_newton_project`). Long bending pairs make a rope or cloth as stiff as its
+  compliances say with the Gauss-Newton solve; with a few Jacobi passes the passes, not the
+  compliances, set how stiff a long object is (``python -m benchmarks.physics_solver``).
 * **Gravity** from the scene, still-air damping ``exp(-damping h)`` per substep.
 * **Table**: a node may not go below its initial height above the plane (capped at
   ``contact_offset_max``, so nodes resting on the table stay where they were reconstructed);
