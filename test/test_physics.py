@@ -371,3 +371,29 @@ def test_the_newton_solver_holds_the_grasp_passes_gradients_and_rejects_bad_sett
     for bad in ({"solver": "gauss"}, {"solver": "newton", "newton_iterations": 0}):
         with pytest.raises(ConfigError, match="solver"):
             PhysicsPrior(_params(**bad))
+
+
+def test_a_non_finite_state_under_the_newton_solver_is_reported_as_divergence_not_a_linalg_error():
+    """A fitted term can blow a rollout up (a negative drag feeds energy in); the workflow scores
+    that as a diverged rollout (SimulationDiverged from Simulator.step). The Cholesky factorisation
+    of a non-finite system must hand NaN on, not raise mid-step."""
+    from soma_ros.core.simulator import SimulationDiverged
+
+    p = _params(solver="newton")
+    pts, m = _chain()
+    lay = build_layout(pts, m, UP, torch.tensor(0.0), p)
+    v = torch.zeros(lay.num_nodes, 3)
+    v[3, 0] = float("inf")
+    with torch.no_grad():
+        x1, _ = pbd_step(lay, lay.rest.clone(), v, G, UP, torch.tensor(0.0), DT, p, _coef(p))
+    assert not bool(torch.isfinite(x1).all())
+    sim, splats = _phys_sim(n=300, solver="newton")
+    sim.add_effect({"name": "quadratic_drag", "direct": True})
+    with torch.no_grad():
+        sim.effects["quadratic_drag"].coeff.fill_(-1e6)  # feeds energy in until the state overflows
+        s = sim.init_state(splats, SceneContext.table())
+        end = splats.means[splats.means[:, 0].argmin()]
+        cp = torch.stack([end + torch.tensor([0.0, 0.004, 0.0]), end - torch.tensor([0.0, 0.004, 0.0])])
+        with pytest.raises(SimulationDiverged):
+            for t in range(200):
+                s = sim.step(s, RobotAction(cp + torch.tensor([0.0, 0.0, 0.01 * t]), 0.0))

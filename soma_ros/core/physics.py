@@ -366,8 +366,12 @@ def _newton_project(lay: PhysicsLayout, q: torch.Tensor, alpha: torch.Tensor, w_
             diag = diag + hk
             g = g + hk[:, None] * (qd - ht)
         hmat = hb.permute(0, 2, 1, 3).reshape(3 * K, 3 * K) + eye * diag.repeat_interleave(3)
-        step = torch.cholesky_solve(-g.reshape(-1, 1), torch.linalg.cholesky(hmat))
-        qd = qd + step.reshape(K, 3)
+        chol, info = torch.linalg.cholesky_ex(hmat)  # no raise, no host sync
+        step = torch.cholesky_solve(-g.reshape(-1, 1), chol)
+        # the system is positive definite whenever it is finite (m > 0, the blocks PSD): a failed
+        # factorisation means non-finite state, handed on as NaN for Simulator.step to report
+        # (SimulationDiverged), as the Jacobi passes do, instead of a LinAlgError mid-step
+        qd = torch.where(info == 0, qd + step.reshape(K, 3), torch.full_like(qd, math.nan))
     return qd.to(q.dtype)
 
 
