@@ -22,6 +22,7 @@ solve per step). Two measurements:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import statistics
 import time
@@ -30,7 +31,6 @@ from typing import Optional, Sequence
 import torch
 
 from benchmarks.bench_core import _actions, _sync, machine_description, make_object, timed_steps
-from soma_ros.core.config import EffectSpec
 from soma_ros.core.physics import PhysicsPrior, build_layout, grasp_nodes, pbd_step
 from soma_ros.core.simulator import SceneContext, Simulator
 
@@ -89,9 +89,9 @@ def solver_variants() -> list[tuple[str, dict]]:
 
 
 def _with_solver(cfg, solver: dict):
-    cfg.effects = [EffectSpec.parse({"name": s.name, **({"key": s.key} if s.key else {}), "direct": s.direct,
-                                     "feature": s.feature, **s.params, **solver})
-                   if s.name == "physics" else s for s in cfg.effects]
+    """The model config with ``solver`` merged into its physics term's params (every other field kept)."""
+    cfg.effects = [dataclasses.replace(s, params={**s.params, **solver}) if s.name == "physics" else s
+                   for s in cfg.effects]
     return cfg
 
 

@@ -288,26 +288,26 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
         if mods.quadratic_drag is not None:
             acc = acc - mods.quadratic_drag * v.norm(dim=-1, keepdim=True) * v
         v = (v + h * acc) * damp
+        target = cps.mean(dim=0) + grasp.offset if heldf is not None else None  # [K, 3] where the fingers hold
         if omega is not None:  # the compliant grip: implicit critically damped spring to the fingers
-            e = x + h * v_f - (cps.mean(dim=0) + grasp.offset)
+            e = x + h * v_f - target
             u1 = ((v - v_f) - grip_k * e) / grip_den
             v = v + heldf * (v_f + u1 - v)
         q = x + h * v
+        hard = heldf is not None and omega is None  # the hard grip holds the held nodes at target
         if p.solver == "newton":
-            hold = None
-            if heldf is not None and omega is None:
-                hold = (heldf[:, 0] / a_grip, cps.mean(dim=0) + grasp.offset)
-            q = _newton_project(lay, q, alpha, w_inv, hold, p.newton_iterations)
-        for _ in range(p.iterations if p.solver == "jacobi" else 0):
-            d = q[lay.sj] - q[lay.si]
-            length = d.norm(dim=-1).clamp_min(1e-9)
-            lam = -(length - lay.rest_len) / (2.0 * w_inv + alpha)  # [E]
-            corr = (lam / length)[:, None] * d
-            dq = torch.zeros_like(q).index_add(0, lay.si, -corr).index_add(0, lay.sj, corr)
-            q = q + w_inv * dq * inv_deg
-            if heldf is not None and omega is None:
-                target = cps.mean(dim=0) + grasp.offset
-                q = q + heldf * (target - q) * (w_inv / (w_inv + a_grip))
+            q = _newton_project(lay, q, alpha, w_inv, (heldf[:, 0] / a_grip, target) if hard else None,
+                                p.newton_iterations)
+        else:
+            for _ in range(p.iterations):
+                d = q[lay.sj] - q[lay.si]
+                length = d.norm(dim=-1).clamp_min(1e-9)
+                lam = -(length - lay.rest_len) / (2.0 * w_inv + alpha)  # [E]
+                corr = (lam / length)[:, None] * d
+                dq = torch.zeros_like(q).index_add(0, lay.si, -corr).index_add(0, lay.sj, corr)
+                q = q + w_inv * dq * inv_deg
+                if hard:
+                    q = q + heldf * (target - q) * (w_inv / (w_inv + a_grip))
         if cps is not None:  # control points push free nodes out of their contact radius
             dmin, jmin = torch.cdist(q, cps).min(dim=-1)
             pen = (p.contact_radius - dmin).clamp_min(0.0)
@@ -345,7 +345,6 @@ def _newton_project(lay: PhysicsLayout, q: torch.Tensor, alpha: torch.Tensor, w_
     qd = q0
     kk = (1.0 / alpha).to(f64)  # [E]
     m = (1.0 / w_inv).to(f64)
-    eye = torch.eye(3 * K, dtype=f64, device=q.device)
     hk = ht = None
     if hold is not None:
         hk, ht = hold[0].to(f64), hold[1].to(f64)
@@ -365,7 +364,7 @@ def _newton_project(lay: PhysicsLayout, q: torch.Tensor, alpha: torch.Tensor, w_
         if hk is not None:
             diag = diag + hk
             g = g + hk[:, None] * (qd - ht)
-        hmat = hb.permute(0, 2, 1, 3).reshape(3 * K, 3 * K) + eye * diag.repeat_interleave(3)
+        hmat = hb.permute(0, 2, 1, 3).reshape(3 * K, 3 * K) + torch.diag(diag.repeat_interleave(3))
         chol, info = torch.linalg.cholesky_ex(hmat)  # no raise, no host sync
         step = torch.cholesky_solve(-g.reshape(-1, 1), chol)
         # the system is positive definite whenever it is finite (m > 0, the blocks PSD): a failed
