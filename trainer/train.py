@@ -849,7 +849,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
                    "best_val": best_val, "best_score": best_score, "best_criterion": crit,
                    "first_val": first_val, "last_val": last_val, "resumed_from": resumed_from,
                    "val_history": val_history, "best_iteration": best_iteration, "best_model": best_state,
-                   "identified": identified,
+                   "identified": identified, "skipped_iterations": skipped,
                    "weights_checksum": _weights_checksum(sim)}
         _atomic_torch_save(payload, state_path)
         info = stage_at(cfg, min(epoch, cfg.schedule.epochs - 1))
@@ -893,6 +893,8 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
             runlog.plot(out_dir / "loss.png", f"{cfg.name}: {len(train_names)} train / {len(val_names)} val episodes")
 
     identified = resume.get("identified") if resume is not None else None
+    # iterations whose gradient was not finite (no step taken), kept across a resume
+    skipped: list[int] = list(resume.get("skipped_iterations", [])) if resume is not None else []
     if start_it == 0 and first_val is None and cfg.identify.values:
         k = min(cfg.identify.episodes, len(train_names))
         picks = [train_names[int(i)] for i in np.unique(np.linspace(0, len(train_names) - 1, k).round().astype(int))]
@@ -914,7 +916,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         bar = tqdm(total=stop, initial=start_it, desc="soma train", unit="it", dynamic_ncols=True)
     it = start_it
     used_episodes: list[str] = []
-    skipped: list[int] = []  # iterations whose gradient was not finite (no step taken)
+    skips_in_a_row = 0
     while it < stop:
         epoch = it // ipe
         info = stage_at(cfg, epoch)
@@ -935,12 +937,12 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         opt.zero_grad(set_to_none=True)
         loss.backward()
         gn, stepped = clipped_step(opt, sim.parameters(), cfg.optim.grad_clip)
+        skips_in_a_row = 0 if stepped else skips_in_a_row + 1
         if not stepped:
             skipped.append(it)
             say(f"iteration {it}: non-finite gradient on episode {name} (loss {float(loss.detach()):.4f}): "
                 "step skipped, weights kept")
-            if len(skipped) >= MAX_SKIPPED_IN_A_ROW and skipped[-MAX_SKIPPED_IN_A_ROW:] == list(
-                    range(it - MAX_SKIPPED_IN_A_ROW + 1, it + 1)):
+            if skips_in_a_row >= MAX_SKIPPED_IN_A_ROW:
                 raise RuntimeError(f"iterations {skipped[-MAX_SKIPPED_IN_A_ROW:]}: {MAX_SKIPPED_IN_A_ROW} non-finite "
                                    "gradients in a row; lower optim.lr or optim.grad_clip")
         it += 1
