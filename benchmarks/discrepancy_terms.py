@@ -9,6 +9,12 @@ rolled out open loop on the held-out episodes the workflow would score (same spl
 protocol as ``soma discrepancy``'s before / after), and its depth RMSE and Chamfer are printed with the
 unchanged model's. It answers "what would the gap be if the workflow had found this term at this
 value": the best a candidate can do at all, independent of the fit.
+
+``--breakdown`` also prints where each variant's depth error lives (scored pixels by rendered
+opacity: covered, edge, missed; ``trainer.evaluate_metrics.depth_error_shares``);
+``--ground-truth-motion`` adds a row for the splats moved by the world's ground-truth motion
+(EVALUATION ONLY: it reads the ground-truth topic; ``benchmarks.discrepancy_headroom``), the floor
+the reconstruction and the renderer set.
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ import time
 from pathlib import Path
 
 UNCHANGED = "unchanged"
+GROUND_TRUTH_MOTION = "ground-truth motion"
 
 
 def parse_variants(text: str) -> dict[str, list[dict]]:
@@ -32,17 +39,19 @@ def parse_variants(text: str) -> dict[str, list[dict]]:
     if not isinstance(variants, dict) or not variants:
         raise ValueError("--variants must be a non-empty JSON object {name: [effect spec, ...]}")
     for name, specs in variants.items():
-        if name == UNCHANGED:
-            raise ValueError(f"variant name {UNCHANGED!r} is reserved for the model as trained")
+        if name in (UNCHANGED, GROUND_TRUTH_MOTION):
+            raise ValueError(f"variant name {name!r} is reserved ({UNCHANGED!r}: the model as trained, "
+                             f"{GROUND_TRUTH_MOTION!r}: --ground-truth-motion)")
         if not isinstance(specs, list) or not all(isinstance(s, dict) and "name" in s for s in specs):
             raise ValueError(f"variant {name!r}: expected a list of effect specs with a 'name', got {specs!r}")
     return variants
 
 
-def score_variants(run: Path, data: Path, variants: dict[str, list[dict]], config: str = "default") -> dict:
+def score_variants(run: Path, data: Path, variants: dict[str, list[dict]], config: str = "default",
+                   ground_truth_motion: bool = False) -> dict:
     """{variant: evaluate_models' result} on the workflow's held-out episodes of ``data``; the model as
-    trained under ``"unchanged"``."""
-    from benchmarks.discrepancy_headroom import evaluate_heldout, heldout_context
+    trained under ``"unchanged"`` (and the ground truth's motion under ``"ground-truth motion"``)."""
+    from benchmarks.discrepancy_headroom import evaluate_heldout, ground_truth_motion as gt_motion, heldout_context
     from trainer.baselines import SimulatorModel
     from trainer.discrepancy import load_discrepancy_config
 
@@ -54,6 +63,8 @@ def score_variants(run: Path, data: Path, variants: dict[str, list[dict]], confi
         for spec in specs:
             sim.add_effect({"direct": cfg.direct, **spec})
         models[name] = SimulatorModel(sim)
+    if ground_truth_motion:
+        models[GROUND_TRUTH_MOTION] = gt_motion({r.name: r.bag for r in ctx.refs})
     return evaluate_heldout(models, ctx, cfg)
 
 
@@ -64,6 +75,9 @@ def main(argv=None) -> int:
     p.add_argument("--variants", required=True, metavar="JSON", help='{"name": [effect spec, ...], ...}')
     p.add_argument("--config", default="default", metavar="NAME|YAML", help="workflow config (config/discrepancy)")
     p.add_argument("--json", default=None, metavar="FILE", help="also write {variant: {metric: value}} here")
+    p.add_argument("--breakdown", action="store_true", help="also print where the depth error lives (by rendered opacity)")
+    p.add_argument("--ground-truth-motion", action="store_true",
+                   help="add the splats moved by the ground truth's motion (evaluation only: reads the ground-truth topic)")
     args = p.parse_args(argv)
     try:
         variants = parse_variants(args.variants)
@@ -78,7 +92,7 @@ def main(argv=None) -> int:
 
     t0 = time.time()
     try:
-        res = score_variants(run, Path(args.data), variants, args.config)
+        res = score_variants(run, Path(args.data), variants, args.config, args.ground_truth_motion)
     except (ConfigError, FileNotFoundError) as e:  # an unknown effect or parameter, a missing dataset
         print(f"discrepancy_terms: error: {e}", file=sys.stderr)
         return 2
@@ -88,6 +102,13 @@ def main(argv=None) -> int:
         m = r["mean"]
         print(f"  {name:>16s}: depth RMSE {m['rmse']:.4f} m ({m['rmse'] / base['rmse']:.2f}x), "
               f"Chamfer {1000 * m['chamfer']:.1f} mm ({m['chamfer'] / base['chamfer']:.2f}x)", flush=True)
+        if args.breakdown:
+            from trainer.evaluate_metrics import depth_error_shares
+
+            shares = depth_error_shares(m)
+            print("                    " + "; ".join(
+                f"{c} {100 * v['pixels']:.1f}% of pixels, {100 * v['error']:.1f}% of the squared error, rms {v['rms']:.4f} m"
+                for c, v in shares.items()), flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps({k: {"rmse": r["mean"]["rmse"], "chamfer": r["mean"]["chamfer"]}
                                                for k, r in res.items()}, indent=1))

@@ -108,3 +108,24 @@ def test_unbound_model_roundtrips(tmp_path):
         a = sim.rollout(sim.init_state(sp, SceneContext.table()), _actions(sp, 3))[-1]
         b = loaded.rollout(loaded.init_state(sp, SceneContext.table()), _actions(sp, 3))[-1]
     assert torch.equal(a.means, b.means)
+
+
+def test_an_effect_parameter_added_later_keeps_its_config_value_with_a_warning(tmp_path):
+    """A checkpoint written before an effect gained a parameter (gripper_slip's weaken, session 20)
+    still loads: the new parameter keeps the value its spec gives (0: no change), with a warning
+    naming it; a missing network weight is still an error (test above)."""
+    sim = Simulator(load_model_config("cpu"))
+    sim.add_effect({"name": "gripper_slip", "direct": True, "loosen": 0.5, "weaken": 0.7})
+    path = save_checkpoint(tmp_path / "new.pt", sim)
+    payload = read_checkpoint(path)
+    assert float(payload["state_dict"]["effects.terms.gripper_slip.weaken"]) == pytest.approx(0.7)
+    payload["state_dict"].pop("effects.terms.gripper_slip.weaken")
+    for spec in payload["model_config"]["effects"]:  # as written before the parameter existed
+        if isinstance(spec, dict) and spec.get("name") == "gripper_slip":
+            spec.pop("weaken", None)
+    old = tmp_path / "old.pt"
+    torch.save(payload, old)
+    with pytest.warns(UserWarning, match="gripper_slip.weaken"):
+        loaded = load_checkpoint(old)
+    assert float(loaded.effects["gripper_slip"].weaken.detach()) == 0.0
+    assert float(loaded.effects["gripper_slip"].loosen.detach()) == pytest.approx(0.5)

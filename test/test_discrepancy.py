@@ -564,15 +564,18 @@ def test_terms_cli_scores_hand_set_terms_on_the_heldout_episodes(clean_run, tmp_
     variants = {"zero": [{"name": "wind", "accel": [0.0, 0.0, 0.0]}],
                 "gale": [{"name": "wind", "accel": [0.0, 40.0, 0.0]}]}
     args = ["--run", str(root / "run"), "--data", str(data), "--config", "fast", "--json", str(out)]
-    assert main(args + ["--variants", json.dumps(variants)]) == 0
+    assert main(args + ["--variants", json.dumps(variants), "--breakdown", "--ground-truth-motion"]) == 0
     res = json.loads(out.read_text())
-    assert set(res) == {"unchanged", "zero", "gale"}
+    assert set(res) == {"unchanged", "zero", "gale", "ground-truth motion"}
     assert res["zero"] == res["unchanged"]
     assert res["gale"]["chamfer"] > 1.5 * res["unchanged"]["chamfer"]
-    assert "held-out episodes" in capsys.readouterr().out
+    assert res["ground-truth motion"]["chamfer"] < res["gale"]["chamfer"]
+    printed = capsys.readouterr().out
+    assert "held-out episodes" in printed and printed.count("of the squared error") == 3 * 4
     assert main(args + ["--variants", "{not json"]) == 2
     assert main(args + ["--variants", '{"a": [{"accel": 1}]}']) == 2
     assert main(args + ["--variants", '{"unchanged": []}']) == 2
+    assert main(args + ["--variants", '{"ground-truth motion": []}']) == 2
     assert main(args + ["--variants", '{"a": [{"name": "wind", "no_such_parameter": 1}]}']) == 2
     assert "error" in capsys.readouterr().err
 
@@ -618,3 +621,38 @@ def test_fits_stay_inside_the_terms_physical_range():
     assert 2.0 < values["excess"][0] < 4.0, values
     wind = build_effect({"name": "wind", "accel": [0.0, 0.0, -400.0]})
     assert wind.project_() == [] and wind.accel.tolist() == [0.0, 0.0, -400.0]
+
+
+def test_grid_start_searches_two_acting_elements_jointly_where_one_at_a_time_stops_early(monkeypatch):
+    """A residual whose best is reachable only by changing both elements at once from a first step
+    that looks good alone: hold = 1 alone halves it, sag = 2 with hold = 0 takes it to a tenth, and
+    with hold = 1 every sag is worse than 0.5. One element at a time (grid_joint 1) stops at
+    (1, 0); the joint grid (grid_joint 2, the default) finds (0, 2). The residual here is a function
+    of the term's two parameters (the search itself is what is tested; the rollouts it stands for
+    are tested with the workflow)."""
+    import trainer.discrepancy as D
+    from soma_ros.core.config import load_model_config
+    from soma_ros.core.simulator import Simulator
+
+    sim = Simulator(load_model_config("cpu")).eval()
+    sim.add_effect({"name": "gripper_slip", "direct": True})
+    eff = sim.effects["gripper_slip"]
+    assert [n for n, _ in sim.acting_parameters("gripper_slip")] == ["hold", "sag"]
+
+    def residual(model, obs, scene):
+        h, s = float(eff.hold.detach()), float(eff.sag.detach())
+        table = {(0.0, 0.0): 1.0, (1.0, 0.0): 0.5, (0.0, 2.0): 0.1}
+        return torch.tensor([table.get((h, s), 2.0 if h != 0.0 else 1.5)])
+
+    monkeypatch.setattr(D, "residual_per_frame", residual)
+    found = {}
+    for joint in (1, 2):
+        with torch.no_grad():
+            eff.hold.zero_()
+            eff.sag.zero_()
+        cfg = load_discrepancy_config("fast", {"grid_start": [-2, -1, 1, 2, 3], "grid_joint": joint})
+        D._grid_start(sim, "gripper_slip", [object()], None, cfg, log=lambda *a: None)
+        found[joint] = (float(eff.hold.detach()), float(eff.sag.detach()))
+    assert found == {1: (1.0, 0.0), 2: (0.0, 2.0)}
+    with pytest.raises(ValueError, match="grid_joint"):
+        load_discrepancy_config("fast", {"grid_joint": 0})

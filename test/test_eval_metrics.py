@@ -17,6 +17,7 @@ from trainer.evaluate_metrics import (
     aggregate_frames,
     chamfer_distance,
     complete_depth_maps,
+    depth_error_shares,
     score_frame,
     table_depth,
 )
@@ -185,6 +186,29 @@ def test_score_frame_masks_and_values():
     assert s3.chamfer == pytest.approx(0.5)
     with pytest.raises(ValueError, match="camera names"):
         score_frame(3, pred, pd, alpha, gt_rgb, gt_depth, obj, robot, table, ["a"])
+
+
+def test_depth_error_breakdown_by_rendered_coverage():
+    """The measured object's 320 pixels: the left half rendered solid 10 cm too far (covered), the
+    next 4 columns at alpha 0.3 on the true depth (edge: 0.7 of the table's 0.5 m gap), the last 6
+    columns empty (missed: the table, 0.5 m behind). Counts, sums, shares and RMS per class."""
+    C, H, W, obj, gt_rgb, gt_depth, table = _frame_inputs()
+    pd, alpha = torch.zeros(C, H, W), torch.zeros(C, H, W)
+    pd[:, 8:24, 10:20], alpha[:, 8:24, 10:20] = 1.1, 1.0
+    pd[:, 8:24, 20:24], alpha[:, 8:24, 20:24] = 1.0, 0.3
+    s = score_frame(1, gt_rgb, pd, alpha, gt_rgb, gt_depth, obj, None, table, ["a", "b"])
+    row = s.per_camera["a"]
+    assert (row["depth_px_covered"], row["depth_px_edge"], row["depth_px_missed"]) == (160, 64, 96)
+    assert row["depth_sq_covered"] == pytest.approx(160 * 0.1 ** 2, rel=1e-4)
+    assert row["depth_sq_edge"] == pytest.approx(64 * 0.35 ** 2, rel=1e-4)
+    assert row["depth_sq_missed"] == pytest.approx(96 * 0.5 ** 2, rel=1e-4)
+    total = sum(row[f"depth_sq_{c}"] for c in ("covered", "edge", "missed"))
+    assert row["rmse"] == pytest.approx(math.sqrt(total / 320), rel=1e-4)
+    shares = depth_error_shares(aggregate_frames([s]))
+    assert shares["missed"]["pixels"] == pytest.approx(0.3) and shares["edge"]["rms"] == pytest.approx(0.35, rel=1e-4)
+    assert sum(v["error"] for v in shares.values()) == pytest.approx(1.0)
+    assert shares["missed"]["error"] == pytest.approx(96 * 0.25 / total, rel=1e-4)
+    assert depth_error_shares({"rmse": 0.1}) == {}
 
 
 def test_aggregation_over_frames_and_episodes():

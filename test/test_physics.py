@@ -138,6 +138,61 @@ def test_modifiers_slip_stiffness_and_mass_change_the_held_rope_as_their_names_s
     assert strain(PhysicsMods(mass=torch.tensor(3.0))) > 1.1 * s0
 
 
+def _flat_rope(n=240, length=0.36, seed=0):
+    """Splats of a straight rope lying on the table along x (z = 0.0065), centred at the origin."""
+    g = torch.Generator().manual_seed(seed)
+    x = (torch.rand(n, generator=g) - 0.5) * length
+    pts = torch.stack([x, 0.002 * torch.randn(n, generator=g), torch.full((n,), 0.0065)], dim=-1)
+    return pts, torch.full((n,), 0.04 / n)
+
+
+def test_a_friction_limited_grip_lets_go_once_the_lifted_load_exceeds_it_and_stays_open():
+    """gripper_slip's weaken w: the fingers carry at most e^(-w) of the rope's weight. Lifted at its
+    middle, the rope comes off the table as the fingers rise; once the lifted part weighs more, it
+    slides out and falls back, earlier the weaker the grip, and is not grasped again while the
+    fingers stay closed. w = 0: no limit (bit-identical to no modifier); w < 0: more than the weight,
+    which only a heavier rope exceeds."""
+    p = _params(num_nodes=32)
+    pts, m = _flat_rope()
+    lay = build_layout(pts, m, UP, torch.tensor(0.0), p)
+    mid = lay.rest[lay.rest[:, 0].abs().argmin()]
+    cp = torch.stack([mid + torch.tensor([0.0, 0.002, 0.0]), mid - torch.tensor([0.0, 0.002, 0.0])])
+    up = torch.tensor([0.0, 0.0, 0.3])  # 0.3 m/s for 40 steps: 0.4 m, the whole rope off the table
+
+    def top(mods):  # the highest node per step
+        return _run(lay, p, lay.rest.clone(), 40, cp, True, mods, up, trajectory=True)[:, :, 2].max(dim=1).values
+
+    hard = top(None)
+    assert float(hard[-1]) > 0.35  # the hard grip carries the rope all the way up
+    assert torch.equal(top(PhysicsMods(release=torch.tensor(0.0))), hard)
+    peaks = {}
+    for w in (0.1, 0.7, 2.0):
+        z = top(PhysicsMods(release=torch.tensor(w)))
+        assert float(z[-1]) < 0.03, (w, z[-1])  # let go: back on the table at the end
+        peaks[w] = float(z.max())
+    assert peaks[0.1] > peaks[0.7] > peaks[2.0] > 0.02  # a weaker grip lets go lower
+    # capacity 1.35 x the nominal weight: the nominal rope is carried, a rope twice as heavy is not
+    assert float(top(PhysicsMods(release=torch.tensor(-0.3)))[-1]) > 0.35
+    assert float(top(PhysicsMods(release=torch.tensor(-0.3), mass=torch.tensor(1.0)))[-1]) < 0.03
+    # the grasp it returns holds nothing, and stays so (the fingers closed): no hold without the modifier either
+    coef, x, v = _coef(p), lay.rest.clone(), torch.zeros_like(lay.rest)
+    grasp, c0, mods = grasp_nodes(lay, x, cp, p), cp, PhysicsMods(release=torch.tensor(0.7))
+    with torch.no_grad():
+        for step in range(40):
+            c1 = c0 + DT * up
+            x1, grasp = pbd_step(lay, x, v, G, UP, torch.tensor(0.0), DT, p, coef, c0, c1, grasp, mods)
+            v, x, c0 = (x1 - x) / DT, x1, c1
+            if not bool(grasp.held.any()):
+                mods = None  # released: from here on a plain hard grip would hold it if it had it
+                break
+        assert step < 39 and x.shape == lay.rest.shape
+        for _ in range(20):
+            c1 = c0 + DT * up
+            x1, grasp = pbd_step(lay, x, v, G, UP, torch.tensor(0.0), DT, p, coef, c0, c1, grasp, None)
+            v, x, c0 = (x1 - x) / DT, x1, c1
+    assert not bool(grasp.held.any()) and float(x[:, 2].max()) < 0.03
+
+
 def _phys_sim(n=600, seed=0, **physics):
     torch.manual_seed(seed)
     cfg = load_model_config("cpu")

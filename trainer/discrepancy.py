@@ -78,6 +78,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import itertools
 import json
 import math
 import multiprocessing as mp
@@ -141,6 +142,9 @@ class DiscrepancyConfig:
     # and start from the best on grid_episodes fit episodes (a response that stays flat until a threshold,
     # e.g. a grip that holds until it slips, gives Adam no gradient to follow from 0); empty = off
     grid_episodes: int = 4
+    grid_joint: int = 2  # effects with at most this many acting parameter elements are gridded jointly (every
+    # combination; a grip that slips at a load and one that sags act together, and one element at a time
+    # stops where either hides the other); larger ones one element at a time (a wind's 3 components)
     direct: bool = True  # candidates are added as direct effects (explicitly integrated force); False: feature only
     reference_data: Optional[str] = None  # the own-error control (rank_candidates): episodes of the conditions the
     # model was trained in that it was not trained on; None: the checkpoint's training dataset, its non-train
@@ -169,8 +173,8 @@ class DiscrepancyConfig:
             raise ValueError("discrepancy: alpha in (0, 0.5), fit_lr > 0 and fit_lr_final in (0, 1] required")
         if self.jobs < 1:
             raise ValueError(f"discrepancy: jobs must be >= 1, got {self.jobs}")
-        if self.grid_episodes < 1 or any(not math.isfinite(float(k)) for k in self.grid_start):
-            raise ValueError("discrepancy: grid_episodes >= 1 and finite grid_start multiples required")
+        if self.grid_episodes < 1 or self.grid_joint < 1 or any(not math.isfinite(float(k)) for k in self.grid_start):
+            raise ValueError("discrepancy: grid_episodes >= 1, grid_joint >= 1 and finite grid_start multiples required")
         return self
 
 
@@ -579,26 +583,45 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
 def _grid_start(model: Simulator, key: str, fit_obs: Sequence[EpisodeObs], scene: SceneContext,
                 cfg: DiscrepancyConfig, log: Callable[[str], None]) -> None:
     """Move effect ``key``'s acting parameters to the best start on a coarse grid
-    (``cfg.grid_start``: multiples of each parameter's ``Effect.fit_scale``, one element at a time,
-    the others at their values; the current value always counts), scored by the 3D residual sum
-    on ``cfg.grid_episodes`` evenly spaced fit episodes. Greedy, one element after another."""
+    (``cfg.grid_start``: multiples of each parameter's ``Effect.fit_scale`` added to its value, clamped
+    to its bounds; the current values always count), scored by the 3D residual sum on
+    ``cfg.grid_episodes`` evenly spaced fit episodes. Every combination when the effect has at most
+    ``cfg.grid_joint`` acting elements, else greedy, one element after another."""
     n = min(len(fit_obs), max(1, cfg.grid_episodes))
     sub = [fit_obs[int(i)] for i in np.round(np.linspace(0, len(fit_obs) - 1, n)).astype(int)]
     score = lambda: float(sum(residual_per_frame(model, o, scene).sum() for o in sub))  # noqa: E731
     best = score()
     scale = getattr(model.effects[key], "fit_scale", {}) or {}
     named = model.acting_parameters(key)
+    # every acting element: (its flat view, index, the values it may take: its start first)
+    elements = []
     for name, p in named:
+        lo, hi = model.effects[key].bounds.get(name, (-math.inf, math.inf))
         flat = p.view(-1)
         for i in range(flat.numel()):
             start = float(flat[i])
-            best_v = start
-            lo, hi = model.effects[key].bounds.get(name, (-math.inf, math.inf))
-            for k in cfg.grid_start:
-                flat[i] = min(max(start + float(k) * float(scale.get(name, 1.0)), lo), hi)
+            values = [start] + [min(max(start + float(k) * float(scale.get(name, 1.0)), lo), hi) for k in cfg.grid_start]
+            elements.append((flat, i, list(dict.fromkeys(values))))
+    if len(elements) <= cfg.grid_joint:
+        best_combo = tuple(v[0] for _, _, v in elements)
+        for combo in itertools.product(*(v for _, _, v in elements)):
+            if combo == best_combo:
+                continue
+            for (flat, i, _), v in zip(elements, combo):
+                flat[i] = v
+            r = score()
+            if r < best:
+                best, best_combo = r, combo
+        for (flat, i, _), v in zip(elements, best_combo):
+            flat[i] = v
+    else:
+        for flat, i, values in elements:
+            best_v = values[0]
+            for v in values[1:]:
+                flat[i] = v
                 r = score()
                 if r < best:
-                    best, best_v = r, float(flat[i])
+                    best, best_v = r, v
             flat[i] = best_v
     log(f"    grid start: {', '.join(f'{n_}={p.detach().reshape(-1).tolist()}' for n_, p in named)}")
 

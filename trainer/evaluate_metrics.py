@@ -37,6 +37,12 @@ depth primitives are :mod:`soma_ros.core.metrics`):
   world's simulation mesh (a rope: 25 vertices on its centre line), the splats sit
   on the observed surface, so even a perfect model has a floor of about the
   object's radius / half-thickness; compare variants, not absolute values.
+* **Where the depth error lives** (``depth_px_*`` / ``depth_sq_*``, per camera image: the number
+  of scored pixels and the sum of their squared depth errors, m^2, in three classes by the
+  rendered opacity: ``covered`` alpha > ``pred_mask_alpha``, ``edge`` ``edge_alpha`` < alpha <=
+  ``pred_mask_alpha``, ``missed`` alpha <= ``edge_alpha``). On a thin object most of a small
+  miss is edge and missed pixels, each costing the object's height above the table;
+  :func:`depth_error_shares` turns the means into shares and an RMS per class.
 * **Aggregation.** Per episode: the mean over the scored frames (and cameras)
   of each metric (the paper averages "over all frames within each video
   sequence"); per split: the mean over episodes (:func:`aggregate_episodes`).
@@ -65,12 +71,18 @@ __all__ = [
     "score_frame",
     "aggregate_frames",
     "aggregate_episodes",
+    "COVERAGE_CLASSES",
+    "COVERAGE_METRICS",
+    "depth_error_shares",
 ]
 
 #: the columns of the table, in the paper's order, plus the 3D error
 METRICS: tuple[str, ...] = ("abs_rel", "rmse", "psnr", "ssim", "lpips", "chamfer")
 #: also in metrics.json: depth over the union of measured and rendered object (module docstring)
 EXTRA_METRICS: tuple[str, ...] = ("abs_rel_union", "rmse_union")
+#: also in metrics.json: the depth error by rendered coverage (module docstring, :func:`depth_error_shares`)
+COVERAGE_CLASSES: tuple[str, ...] = ("covered", "edge", "missed")
+COVERAGE_METRICS: tuple[str, ...] = tuple(f"depth_{k}_{c}" for c in COVERAGE_CLASSES for k in ("px", "sq"))
 LOWER_IS_BETTER = {"abs_rel": True, "rmse": True, "psnr": False, "ssim": False, "lpips": True, "chamfer": True,
                    "abs_rel_union": True, "rmse_union": True}
 
@@ -82,11 +94,14 @@ class EvalMetricsConfig:
     skip_first: bool = True  # leave frame 0 (the shared initial scene) out
     with_lpips: bool = True
     pred_mask_alpha: float = 0.5  # rendered pixels with alpha above this count as object (depth region)
+    edge_alpha: float = 0.05  # the depth error breakdown: alpha <= this is "missed", up to pred_mask_alpha "edge"
     chamfer_chunk: int = 4096  # rows per cdist block (memory bound)
 
     def validate(self) -> "EvalMetricsConfig":
         if not 0.0 < self.pred_mask_alpha < 1.0:
             raise ValueError(f"pred_mask_alpha must lie in (0, 1), got {self.pred_mask_alpha}")
+        if not 0.0 < self.edge_alpha < self.pred_mask_alpha:
+            raise ValueError(f"edge_alpha must lie in (0, pred_mask_alpha), got {self.edge_alpha}")
         if self.chamfer_chunk < 1:
             raise ValueError("chamfer_chunk must be >= 1")
         return self
@@ -240,6 +255,14 @@ def score_frame(
                                           cfg.pred_mask_alpha, region="union")
         ar_u = M.depth_abs_rel(pd, gd, union).reshape(-1)
         rm_u = M.depth_rmse(pd, gd, union).reshape(-1)
+        a = pred_alpha.clamp(0.0, 1.0)
+        sq = (pd - gd).square()
+        coverage = {}
+        for cls, sel in zip(COVERAGE_CLASSES, (a > cfg.pred_mask_alpha, (a > cfg.edge_alpha) & (a <= cfg.pred_mask_alpha),
+                                               a <= cfg.edge_alpha)):
+            sel = sel & region
+            coverage[f"depth_px_{cls}"] = sel.sum(dim=(1, 2)).double()
+            coverage[f"depth_sq_{cls}"] = torch.where(sel, sq, torch.zeros_like(sq)).sum(dim=(1, 2)).double()
         # the protocol of M.image_metrics, batched over the cameras (one value per camera)
         pm, gm = M.apply_eval_masks(pred_rgb.float(), gt_rgb.float(), object_mask, robot_mask)
         ps = M.psnr(pm, gm).reshape(-1)
@@ -247,7 +270,8 @@ def score_frame(
         lp = M.lpips(pm, gm, lpips_model).reshape(-1) if cfg.with_lpips else None
         for c, name in enumerate(camera_names):
             row = {"psnr": float(ps[c]), "ssim": float(ss[c]), "abs_rel": float(ar[c]), "rmse": float(rm[c]),
-                   "abs_rel_union": float(ar_u[c]), "rmse_union": float(rm_u[c])}
+                   "abs_rel_union": float(ar_u[c]), "rmse_union": float(rm_u[c]),
+                   **{k: float(v[c]) for k, v in coverage.items()}}
             if lp is not None:
                 row["lpips"] = float(lp[c])
             row["depth_pixels"] = float(region[c].sum())
@@ -266,7 +290,8 @@ def _mean_finite(values: Iterable[float]) -> tuple[float, int, int]:
     return (sum(fin) / len(fin) if fin else math.nan), len(fin), len(vals) - len(fin)
 
 
-def aggregate_frames(frames: Sequence[FrameScores], metrics: Sequence[str] = METRICS + EXTRA_METRICS) -> dict:
+def aggregate_frames(frames: Sequence[FrameScores],
+                     metrics: Sequence[str] = METRICS + EXTRA_METRICS + COVERAGE_METRICS) -> dict:
     """Episode summary: the mean of every metric over the scored frames and cameras.
 
     Returns {metric: mean} plus ``per_camera`` {camera: {metric: mean}}, ``frames`` (count),
@@ -298,7 +323,8 @@ def aggregate_frames(frames: Sequence[FrameScores], metrics: Sequence[str] = MET
     return out
 
 
-def aggregate_episodes(episodes: dict[str, dict], metrics: Sequence[str] = METRICS + EXTRA_METRICS) -> dict:
+def aggregate_episodes(episodes: dict[str, dict],
+                       metrics: Sequence[str] = METRICS + EXTRA_METRICS + COVERAGE_METRICS) -> dict:
     """Split summary: the mean over episodes of each per-episode mean ({metric: value}, NaN-safe),
     plus ``episodes`` (count)."""
     if not episodes:
@@ -310,3 +336,18 @@ def aggregate_episodes(episodes: dict[str, dict], metrics: Sequence[str] = METRI
             out[m] = _mean_finite(vals)[0]
     out["episodes"] = len(episodes)
     return out
+
+
+def depth_error_shares(mean: dict) -> dict[str, dict[str, float]]:
+    """{class: {"pixels": share of the scored pixels, "error": share of the squared depth error,
+    "rms": m}} for ``covered``, ``edge``, ``missed`` (module docstring) from a summary's means of
+    ``depth_px_*`` / ``depth_sq_*`` (:func:`aggregate_frames`, :func:`aggregate_episodes`). The
+    shares are of the means (every camera image and, across episodes, every episode weighted
+    alike), so they sum to 1; empty where the summary has no such keys."""
+    px = {c: mean.get(f"depth_px_{c}") for c in COVERAGE_CLASSES}
+    sq = {c: mean.get(f"depth_sq_{c}") for c in COVERAGE_CLASSES}
+    if any(v is None or not math.isfinite(v) for v in list(px.values()) + list(sq.values())):
+        return {}
+    tp, ts = sum(px.values()), sum(sq.values())
+    return {c: {"pixels": px[c] / tp if tp > 0 else math.nan, "error": sq[c] / ts if ts > 0 else math.nan,
+                "rms": math.sqrt(sq[c] / px[c]) if px[c] > 0 else math.nan} for c in COVERAGE_CLASSES}

@@ -31,7 +31,10 @@ gripper_slip        the grasp as a whole: while the gripper is closed on the obj
                     (:mod:`.physics`) these two do not act; loosen* does: > 0 the held
                     object hangs in the fingers by a critically damped spring-damper
                     of time constant 0.05 s (e^(2 loosen) - 1) (stiff at 0, lets go as it
-                    grows), < 0 a tighter grip. [hold*, sag*, radius, loosen*]
+                    grows), < 0 a tighter grip; and weaken* a friction-limited grip: the
+                    fingers carry at most e^(-weaken) of the object's weight, and the
+                    object slides out and falls once the part lifted off the table weighs
+                    more (0: no limit). [hold*, sag*, radius, loosen*, weaken*]
 mass_scale          extra weight of the lifted material: F = excess m g s(d),
                     s(d) = smoothstep((d - d0) / (d1 - d0)) = 0 on the table
                     (d <= d0, where the support carries any weight, so the rest
@@ -108,8 +111,10 @@ class GripperSlip(Effect):
 
     # physics prior: loosen 0.5 / 1 / 1.5 = a grip of time constant 0.086 / 0.32 / 0.95 s, whose static sag is
     # 7 cm / 1 m / 9 m (one grid point per half decade of the grips between stiff and holding nothing)
-    fit_scale = {"loosen": 0.5}
-    prior_only = ("loosen",)
+    # weaken 0.5 / 1 / 1.5: the grip carries 61 / 37 / 22% of the object's weight
+    fit_scale = {"loosen": 0.5, "weaken": 0.5}
+    bounds = {"weaken": (-1.0, 10.0)}  # e^(-weaken): 0.05 to 2.7 times the object's weight
+    prior_only = ("loosen", "weaken")
     force_only = ("hold", "sag")
 
     @dataclass
@@ -118,6 +123,7 @@ class GripperSlip(Effect):
         sag: float = 0.0  # fraction of g
         radius: float = 0.03  # m
         loosen: float = 0.0  # physics prior: > 0 a compliant grip (spring-damper, tau = 0.05 s (e^(2 loosen) - 1))
+        weaken: float = 0.0  # physics prior: != 0 the grip lets go once the lifted load exceeds e^(-weaken) x the weight
 
     def __init__(self, params, *, attr_dim: int = 0) -> None:
         super().__init__(params, attr_dim=attr_dim)
@@ -126,11 +132,12 @@ class GripperSlip(Effect):
         self.hold = _param(float(params.hold))
         self.sag = _param(float(params.sag))
         self.loosen = _param(float(params.loosen))
+        self.weaken = _param(float(params.weaken))
 
     def physics_modifier(self, ctx: EffectContext):
         from .physics import PhysicsMods
 
-        return PhysicsMods(grip=self.loosen)
+        return PhysicsMods(grip=self.loosen, release=self.weaken)
 
     def forward(self, ctx: EffectContext) -> torch.Tensor:
         out = ctx.positions.new_zeros((ctx.num_nodes, 3))

@@ -42,6 +42,16 @@ Model (per step t -> t+1, stateless: everything is read from the simulator's sta
   hard grip) through a soft one whose load sags out of the fingers as it is carried, to one that
   holds nothing.
   g < 0: a tighter grip (the compliance x e^(3 g)).
+  A **friction-limited grip** (``PhysicsMods.release`` = r != 0, gripper_slip's ``weaken``): the
+  fingers' friction carries at most ``e^(-r)`` of the object's nominal weight (r = 0.5 -> 0.61,
+  1 -> 0.37, 2 -> 0.14; r < 0: more than the weight, which only a heavier object, ``mods.mass``,
+  can exceed; r = 0: no limit). The load is the weight of the part off the table, quasi-static (the grip carries
+  what the table does not; inertia neglected): each node counts ``smoothstep`` of its height
+  above its floor between ``release_d0`` and ``release_d1`` times its mass (times the mass
+  factor). At the end of a step whose load exceeds the grip's capacity the object slides out
+  of the fingers and falls free: the grasp is lost (a :class:`Grasp` holding nothing) until the
+  gripper opens and closes again. An event, not differentiable in r (the workflow's fit finds r
+  on its grid start, ``trainer.discrepancy._grid_start``).
 * ``substeps`` per step. The nodes' displacement over the step gives a velocity change per
   node, carried to the splats by linear-blend skinning (``skin_neighbors`` nearest nodes); the
   term's force makes the fraction ``gain`` of it happen:
@@ -98,6 +108,7 @@ class PhysicsMods:
     grip: Optional[torch.Tensor] = None  # > 0: a compliant grip, time constant GRIP_TAU0 (e^(2 grip) - 1); < 0: tighter
     mass: Optional[torch.Tensor] = None  # the object is (1 + mass) times heavier (> -0.9)
     stiffness: Optional[torch.Tensor] = None  # stretch and bending compliances / exp(stiffness)
+    release: Optional[torch.Tensor] = None  # != 0: the grip lets go once the load off the table exceeds e^(-release) x the weight
 
     def add(self, other: "PhysicsMods") -> "PhysicsMods":
         """The sum of two sets of changes (fields present in either)."""
@@ -244,6 +255,9 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
     ``mods.mass`` divides r by the mass factor: the same spring, a heavier load).
     Differentiable in x, v, coef, mods and the grasp's offsets."""
     mods = mods or PhysicsMods()
+    kept = grasp  # returned as it is: a lost grasp (holding nothing) stays lost while the gripper is closed
+    if grasp is not None and not bool(grasp.held.any()):
+        grasp = None
     h = float(dt) / p.substeps
     h2 = h * h
     stiff = torch.exp(mods.stiffness) if mods.stiffness is not None else None
@@ -325,7 +339,22 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
             q = q - dxt * ((1.0 - keepf) * (depth > 0).to(q.dtype))[:, None]
         v = (q - x) / h
         x = q
-    return x, grasp
+    if grasp is not None and mods.release is not None and float(mods.release.detach()) != 0.0:
+        heavier = 1.0 + float(mods.mass.detach().clamp_min(-0.9)) if mods.mass is not None else 1.0
+        if _lifted_fraction(lay, x.detach(), nrm, off, p) * heavier > math.exp(-float(mods.release.detach())):
+            kept = Grasp(torch.zeros_like(grasp.held), grasp.offset)  # slid out of the fingers
+    return x, kept
+
+
+@torch.no_grad()
+def _lifted_fraction(lay: PhysicsLayout, x: torch.Tensor, nrm: torch.Tensor, off: torch.Tensor,
+                     p: "PhysicsPrior.Params") -> float:
+    """The fraction of the object's mass off the table (smoothstep of every node's height above
+    its floor between ``release_d0`` and ``release_d1``): the load a grip carries, quasi-static."""
+    lift = (x @ nrm + off) - lay.floor  # [K] height above the node's floor
+    s = ((lift - p.release_d0) / (p.release_d1 - p.release_d0)).clamp(0.0, 1.0)
+    s = s * s * (3.0 - 2.0 * s)
+    return float((lay.node_mass * s).sum() / lay.node_mass.sum())
 
 
 def _newton_project(lay: PhysicsLayout, q: torch.Tensor, alpha: torch.Tensor, w_inv: torch.Tensor,
@@ -405,6 +434,8 @@ class PhysicsPrior(Effect):
         damping: float = 1.0  # 1/s (learnable)
         friction: float = 1.0  # the table's (learnable)
         gain: float = 0.9  # fraction of the velocity change made per step (learnable, in (0, 1))
+        release_d0: float = 0.02  # m above a node's floor: below it the table carries the node (release rule)
+        release_d1: float = 0.05  # m: from here up the grip carries all of the node's weight
 
     def __init__(self, params, *, attr_dim: int = 0) -> None:
         super().__init__(params, attr_dim=attr_dim)
@@ -423,6 +454,8 @@ class PhysicsPrior(Effect):
                               f"got {p.solver!r}, {p.newton_iterations}")
         if not 0.0 < p.relaxation < 2.0 or not 0.0 < p.gain < 1.0 or not 0.0 < p.grip_threshold < 1.0:
             raise ConfigError("effect physics: relaxation in (0, 2), gain and grip_threshold in (0, 1) required")
+        if not p.release_d1 > p.release_d0 >= 0.0:
+            raise ConfigError(f"effect physics: release_d1 > release_d0 >= 0 required, got {p.release_d0}, {p.release_d1}")
         if not 0.0 <= p.friction < 5.0 or p.contact_offset_max < 0:
             raise ConfigError("effect physics: friction in [0, 5) and contact_offset_max >= 0 required")
         f = lambda v: nn.Parameter(torch.tensor(math.log(v)))  # noqa: E731
