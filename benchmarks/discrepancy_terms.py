@@ -12,7 +12,8 @@ value": the best a candidate can do at all, independent of the fit.
 
 ``--breakdown`` also prints where each variant's depth error lives (scored pixels by rendered
 opacity: covered, edge, missed; ``trainer.evaluate_metrics.depth_error_shares``);
-``--ground-truth-motion`` adds a row for the splats moved by the world's ground-truth motion
+``--heights K`` prints how far each variant lifts the object (its highest splat's rise above frame 0,
+every K-th frame of every held-out episode). ``--ground-truth-motion`` adds a row for the splats moved by the world's ground-truth motion
 (EVALUATION ONLY: it reads the ground-truth topic; ``benchmarks.discrepancy_headroom``), the floor
 the reconstruction and the renderer set.
 """
@@ -47,11 +48,11 @@ def parse_variants(text: str) -> dict[str, list[dict]]:
     return variants
 
 
-def score_variants(run: Path, data: Path, variants: dict[str, list[dict]], config: str = "default",
-                   ground_truth_motion: bool = False) -> dict:
-    """{variant: evaluate_models' result} on the workflow's held-out episodes of ``data``; the model as
-    trained under ``"unchanged"`` (and the ground truth's motion under ``"ground-truth motion"``)."""
-    from benchmarks.discrepancy_headroom import evaluate_heldout, ground_truth_motion as gt_motion, heldout_context
+def build_models(run: Path, data: Path, variants: dict[str, list[dict]], config: str = "default",
+                 ground_truth_motion: bool = False):
+    """(the workflow's held-out context of ``data``, its config, {name: rollout model}): the model as
+    trained under ``"unchanged"``, one per variant, the ground truth's motion if asked."""
+    from benchmarks.discrepancy_headroom import ground_truth_motion as gt_motion, heldout_context
     from trainer.baselines import SimulatorModel
     from trainer.discrepancy import load_discrepancy_config
 
@@ -65,7 +66,35 @@ def score_variants(run: Path, data: Path, variants: dict[str, list[dict]], confi
         models[name] = SimulatorModel(sim)
     if ground_truth_motion:
         models[GROUND_TRUTH_MOTION] = gt_motion({r.name: r.bag for r in ctx.refs})
+    return ctx, cfg, models
+
+
+def score_variants(run: Path, data: Path, variants: dict[str, list[dict]], config: str = "default",
+                   ground_truth_motion: bool = False) -> dict:
+    """{variant: evaluate_models' result} on the workflow's held-out episodes of ``data``; the model as
+    trained under ``"unchanged"`` (and the ground truth's motion under ``"ground-truth motion"``)."""
+    from benchmarks.discrepancy_headroom import evaluate_heldout
+
+    ctx, cfg, models = build_models(run, data, variants, config, ground_truth_motion)
     return evaluate_heldout(models, ctx, cfg)
+
+
+def rollout_heights(ctx, models: dict) -> dict[str, dict[str, list[float]]]:
+    """{model: {held-out episode: [m per frame]}}: how far the object's highest splat has risen above
+    its height in the first frame (along the table's normal), every frame of the open-loop rollout."""
+    import torch
+
+    from trainer.discrepancy import HELDOUT
+
+    n = torch.as_tensor(ctx.scene.plane_normal, dtype=torch.float32)
+    out: dict[str, dict[str, list[float]]] = {name: {} for name in models}
+    for ref in ctx.episodes(HELDOUT):
+        ep, init = ctx.store.episode(ref.name), ctx.store.initial_splats(ref.name)
+        for name, model in models.items():
+            with torch.no_grad():
+                top = [float((means.detach().float() @ n).max()) for means, _ in model.rollout(ep, init, ctx.scene)]
+            out[name][ref.name] = [h - top[0] for h in top]
+    return out
 
 
 def main(argv=None) -> int:
@@ -76,6 +105,8 @@ def main(argv=None) -> int:
     p.add_argument("--config", default="default", metavar="NAME|YAML", help="workflow config (config/discrepancy)")
     p.add_argument("--json", default=None, metavar="FILE", help="also write {variant: {metric: value}} here")
     p.add_argument("--breakdown", action="store_true", help="also print where the depth error lives (by rendered opacity)")
+    p.add_argument("--heights", type=int, default=0, metavar="K",
+                   help="also print every K-th frame's rise (cm) of the object's highest splat, per held-out episode")
     p.add_argument("--ground-truth-motion", action="store_true",
                    help="add the splats moved by the ground truth's motion (evaluation only: reads the ground-truth topic)")
     args = p.parse_args(argv)
@@ -90,9 +121,12 @@ def main(argv=None) -> int:
         return 2
     from soma_ros.core.config import ConfigError
 
+    from benchmarks.discrepancy_headroom import evaluate_heldout
+
     t0 = time.time()
     try:
-        res = score_variants(run, Path(args.data), variants, args.config, args.ground_truth_motion)
+        ctx, cfg, models = build_models(run, Path(args.data), variants, args.config, args.ground_truth_motion)
+        res = evaluate_heldout(models, ctx, cfg)
     except (ConfigError, FileNotFoundError) as e:  # an unknown effect or parameter, a missing dataset
         print(f"discrepancy_terms: error: {e}", file=sys.stderr)
         return 2
@@ -109,6 +143,12 @@ def main(argv=None) -> int:
             print("                    " + "; ".join(
                 f"{c} {100 * v['pixels']:.1f}% of pixels, {100 * v['error']:.1f}% of the squared error, rms {v['rms']:.4f} m"
                 for c, v in shares.items()), flush=True)
+    if args.heights > 0:
+        heights = rollout_heights(ctx, models)
+        print(f"rise of the highest splat above frame 0, cm, every {args.heights} frames:")
+        for episode in next(iter(heights.values())):
+            for name, per in heights.items():
+                print(f"  {episode} {name:>20s}: " + " ".join(f"{100 * h:3.0f}" for h in per[episode][::args.heights]))
     if args.json:
         Path(args.json).write_text(json.dumps({k: {"rmse": r["mean"]["rmse"], "chamfer": r["mean"]["chamfer"]}
                                                for k, r in res.items()}, indent=1))

@@ -564,7 +564,7 @@ def test_terms_cli_scores_hand_set_terms_on_the_heldout_episodes(clean_run, tmp_
     variants = {"zero": [{"name": "wind", "accel": [0.0, 0.0, 0.0]}],
                 "gale": [{"name": "wind", "accel": [0.0, 40.0, 0.0]}]}
     args = ["--run", str(root / "run"), "--data", str(data), "--config", "fast", "--json", str(out)]
-    assert main(args + ["--variants", json.dumps(variants), "--breakdown", "--ground-truth-motion"]) == 0
+    assert main(args + ["--variants", json.dumps(variants), "--breakdown", "--ground-truth-motion", "--heights", "5"]) == 0
     res = json.loads(out.read_text())
     assert set(res) == {"unchanged", "zero", "gale", "ground-truth motion"}
     assert res["zero"] == res["unchanged"]
@@ -572,6 +572,9 @@ def test_terms_cli_scores_hand_set_terms_on_the_heldout_episodes(clean_run, tmp_
     assert res["ground-truth motion"]["chamfer"] < res["gale"]["chamfer"]
     printed = capsys.readouterr().out
     assert "held-out episodes" in printed and printed.count("of the squared error") == 3 * 4
+    rows = printed.split("rise of the highest splat")[1].splitlines()[1:]
+    assert len(rows) == 2 * 4  # 2 held-out episodes x 4 models, every 5th frame
+    assert all(ln.split(":")[1].split()[0] == "0" for ln in rows)  # frame 0: no rise
     assert main(args + ["--variants", "{not json"]) == 2
     assert main(args + ["--variants", '{"a": [{"accel": 1}]}']) == 2
     assert main(args + ["--variants", '{"unchanged": []}']) == 2
