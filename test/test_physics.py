@@ -191,6 +191,8 @@ def test_a_friction_limited_grip_lets_go_once_the_lifted_load_exceeds_it_and_sta
             x1, grasp = pbd_step(lay, x, v, G, UP, torch.tensor(0.0), DT, p, coef, c0, c1, grasp, None)
             v, x, c0 = (x1 - x) / DT, x1, c1
     assert not bool(grasp.held.any()) and float(x[:, 2].max()) < 0.03
+    with pytest.raises(ConfigError, match="release_d1 > release_d0"):
+        PhysicsPrior(_params(release_d0=0.05, release_d1=0.02))
 
 
 def _phys_sim(n=600, seed=0, **physics):
