@@ -69,16 +69,6 @@ def build_models(run: Path, data: Path, variants: dict[str, list[dict]], config:
     return ctx, cfg, models
 
 
-def score_variants(run: Path, data: Path, variants: dict[str, list[dict]], config: str = "default",
-                   ground_truth_motion: bool = False) -> dict:
-    """{variant: evaluate_models' result} on the workflow's held-out episodes of ``data``; the model as
-    trained under ``"unchanged"`` (and the ground truth's motion under ``"ground-truth motion"``)."""
-    from benchmarks.discrepancy_headroom import evaluate_heldout
-
-    ctx, cfg, models = build_models(run, data, variants, config, ground_truth_motion)
-    return evaluate_heldout(models, ctx, cfg)
-
-
 def rollout_heights(ctx, models: dict) -> dict[str, dict[str, list[float]]]:
     """{model: {held-out episode: [m per frame]}}: how far the object's highest splat has risen above
     its height in the first frame (along the table's normal), every frame of the open-loop rollout."""

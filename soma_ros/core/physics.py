@@ -339,9 +339,9 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
             q = q - dxt * ((1.0 - keepf) * (depth > 0).to(q.dtype))[:, None]
         v = (q - x) / h
         x = q
-    if grasp is not None and mods.release is not None and float(mods.release.detach()) != 0.0:
-        heavier = 1.0 + float(mods.mass.detach().clamp_min(-0.9)) if mods.mass is not None else 1.0
-        if _lifted_fraction(lay, x.detach(), nrm, off, p) * heavier > math.exp(-float(mods.release.detach())):
+    release = float(mods.release.detach()) if mods.release is not None else 0.0
+    if grasp is not None and release != 0.0:  # the load (times the mass factor, 1 / w_inv) against the capacity
+        if _lifted_fraction(lay, x.detach(), nrm, off, p) / float(w_inv.detach()) > math.exp(-release):
             kept = Grasp(torch.zeros_like(grasp.held), grasp.offset)  # slid out of the fingers
     return x, kept
 
