@@ -28,7 +28,9 @@ Model (per step t -> t+1, stateless: everything is read from the simulator's sta
 * **Table**: a node may not go below its initial height above the plane (capped at
   ``contact_offset_max``, so nodes resting on the table stay where they were reconstructed);
   pushed below it is projected back and its tangential displacement is reduced by Coulomb
-  friction ``mu x depth``.
+  friction ``mu x depth``. The projection is a position correction: the node leaves the substep
+  with no velocity away from the table (``inelastic_table``, session 21; before, a node that began
+  a substep below its floor kept the push as velocity, and a rope landing on the table bounced).
 * **Gripper** (the action at t+1; control points move linearly from t within the step): when
   the gripper closes, the nodes within ``attach_radius`` of the control points' centroid are
   grasped, each held at its offset to that centroid (compliance ``grip_compliance``)
@@ -338,6 +340,12 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
             keepf = (1.0 - mu * depth / st).clamp_min(0.0)
             q = q - dxt * ((1.0 - keepf) * (depth > 0).to(q.dtype))[:, None]
         v = (q - x) / h
+        if p.inelastic_table and bool((depth > 0).any()):
+            # a node the table pushed back out leaves the substep with no velocity away from it: the
+            # push undoes a penetration (one that began before the substep included), it is not a
+            # bounce (without this, 1 mm below the floor at a substep's start leaves it at 0.5 m/s)
+            vn = v @ nrm
+            v = v - ((depth > 0).to(v.dtype) * vn.clamp_min(0.0))[:, None] * nrm
         x = q
     release = float(mods.release.detach()) if mods.release is not None else 0.0
     if grasp is not None and release != 0.0:  # the load (times the mass factor, 1 / w_inv) against the capacity
@@ -436,6 +444,7 @@ class PhysicsPrior(Effect):
         gain: float = 0.9  # fraction of the velocity change made per step (learnable, in (0, 1))
         release_d0: float = 0.02  # m above a node's floor: below it the table carries the node (release rule)
         release_d1: float = 0.05  # m: from here up the grip carries all of the node's weight
+        inelastic_table: bool = True  # a node pushed out of the table gains no velocity away from it
 
     def __init__(self, params, *, attr_dim: int = 0) -> None:
         super().__init__(params, attr_dim=attr_dim)
