@@ -118,24 +118,22 @@ def test_modifiers_slip_stiffness_and_mass_change_the_held_rope_as_their_names_s
     loose = _run(lay, p, lay.rest.clone(), 20, cp, True, PhysicsMods(grip=torch.tensor(2.5)), up)
     # a loosened grip lets the rope slide down through the fingers: it rises less
     assert float(loose[:, 2].mean()) < float(ref[:, 2].mean()) - 0.01
-    # stiffness and mass scale the constraints against inertia: a chain stretched by 20 % in still
-    # space contracts towards its rest lengths faster when stiffer, slower when heavier (compliances
-    # large enough that they, not the number of passes, set the stiffness)
+    # stiffness and mass scale the constraints against the load: a compliant chain hanging from the
+    # fingers stretches less when stiffer, more when heavier (compliances large enough that they,
+    # not the solve, set the stretch; the table far below, z = -10 m)
     p = _params(bend_compliance=1e-4, stretch_compliance=1e-4)
-    lay = build_layout(pts, m, UP, torch.tensor(-10.0), p)  # the table far below
-    stretched = lay.rest * torch.tensor([1.0, 1.0, 1.2])
-    coef = _coef(p)
+    lay = build_layout(pts, m, UP, torch.tensor(10.0), p)
+    cp = _top_grip(lay)
 
     def strain(mods):
-        with torch.no_grad():
-            x = pbd_step(lay, stretched, torch.zeros_like(stretched), torch.zeros(3), UP, torch.tensor(-10.0), DT, p,
-                         coef, mods=mods)[0]
+        x = _run(lay, p, lay.rest.clone(), 30, cp, True, mods)
         d = (x[lay.sj] - x[lay.si]).norm(dim=-1)
-        return float(((d - lay.rest_len) / lay.rest_len).abs().mean())
+        return float(((d - lay.rest_len) / lay.rest_len).mean())
 
     s0 = strain(None)
-    assert strain(PhysicsMods(stiffness=torch.tensor(2.0))) < 0.9 * s0
-    assert strain(PhysicsMods(mass=torch.tensor(3.0))) > 1.1 * s0
+    assert s0 > 0.005
+    assert strain(PhysicsMods(stiffness=torch.tensor(2.0))) < 0.5 * s0
+    assert strain(PhysicsMods(mass=torch.tensor(3.0))) > 2.0 * s0
 
 
 def _flat_rope(n=240, length=0.36, seed=0):
