@@ -305,6 +305,33 @@ def test_mcap_storage(cfg, tmp_path):
     assert len(bag["/joint_states"]) == 8 and m["storage"] == "mcap"
 
 
+def test_an_exploded_object_rejects_the_episode_and_leaves_nothing(cfg, tmp_path):
+    """A frame whose object has an element stretched beyond physics.max_element_stretch is a
+    simulation that blew up (a rope that fell off the table in a strong wind once stretched 21x):
+    generation stops with an error naming the frame, and no half-written bag is left. The limit is
+    set just above 1 here so the first frame trips it."""
+    from dataclasses import replace
+
+    from soma_ros.world.simulate import element_edges, max_edge_stretch
+
+    tet = np.array([[0, 1, 2, 3]])
+    assert element_edges(tet).tolist() == [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]
+    assert element_edges(np.array([[0, 1], [1, 2], [2, 1]])).tolist() == [[0, 1], [1, 2]]
+    pts = np.array([[0.0, 0, 0], [1.0, 0, 0], [3.0, 0, 0]])
+    assert max_edge_stretch(pts, np.array([[0, 1], [1, 2]]), np.array([1.0, 1.0])) == 2.0
+    tight = replace(cfg, physics=replace(cfg.physics, max_element_stretch=1.000001))
+    with pytest.raises(RuntimeError, match=r"diverged at frame 1: an element of the rope is .*x its rest length"):
+        generate_dataset(tight, "rope", "tiny", tmp_path / "out", episodes=1, frames=8, progress=False)
+    assert not (tmp_path / "out" / "rope_000").exists()
+    world = yaml.safe_load((ROOT / "config/world/default.yaml").read_text())
+    world["physics"]["max_element_stretch"] = 1.0
+    world["robot"] = str(ROOT / "config/world/robot_panda.yaml")
+    world["effects_config"] = str(ROOT / "config/world/effects.yaml")
+    (tmp_path / "w.yaml").write_text(yaml.safe_dump(world))
+    with pytest.raises(ValueError, match="max_element_stretch must be > 1"):
+        load_world_config(tmp_path / "w.yaml")
+
+
 # ----------------------------------------------------------------------------- robot from config
 
 

@@ -256,6 +256,10 @@ class PhysicsConfig:
     ls_iterations: int = 20
     #: Seconds simulated before the first recorded frame (object settles).
     settle_seconds: float = 0.4
+    #: An object element (rope segment, cloth or tet edge) longer than this many times its rest
+    #: length after a frame means the simulation exploded: the episode is rejected with an error
+    #: instead of recording it (ropes that fall off the table stretch up to ~1.8x on impact).
+    max_element_stretch: float = 3.0
 
 
 @dataclass
@@ -468,6 +472,8 @@ class WorldConfig:
         _vec(self.table.size, 3, "table.size")
         if self.physics.timestep <= 0 or self.fps <= 0:
             raise ValueError("world config: physics.timestep and fps must be positive")
+        if not self.physics.max_element_stretch > 1.0:
+            raise ValueError(f"world config: physics.max_element_stretch must be > 1, got {self.physics.max_element_stretch}")
 
     def preset(self, name: str) -> PresetConfig:
         if name not in self.presets:

@@ -141,7 +141,7 @@ def generate_episode(
         eff = ActiveEffects(list(effects), cfg.effects)
         young, mass, table_mu = eff.young(obj), eff.mass(obj), eff.table_friction(cfg.table)
         scene = build_scene(cfg, obj, geom, pre.width, pre.height, young, mass, table_mu)
-        sim = EpisodeSim(scene, plan, eff, spf)
+        sim = EpisodeSim(scene, plan, eff, spf, cfg.physics.max_element_stretch)
         sim.settle(cfg.physics.settle_seconds)
 
         stamp0 = episode_stamp0_ns(cfg, seed, index)

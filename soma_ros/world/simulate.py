@@ -13,6 +13,12 @@ without joint torque sensing.
 The grasp is a set of ``connect`` equalities from the hand link to the
 object vertices nearest the TCP (within ``grasp_radius``), switched on when
 the fingers have nearly closed and off when the plan opens the gripper.
+
+An episode whose simulation blows up is rejected, never recorded: MuJoCo's
+own divergence warnings, a non-finite state, or an object element stretched
+beyond ``physics.max_element_stretch`` times its rest length (a flex that
+exploded while MuJoCo kept going; seen once, a rope blown off the table by
+the strong wind, stretched 21x after hitting the floor).
 """
 
 from __future__ import annotations
@@ -29,10 +35,25 @@ from .robot import gripper_joint_value
 from .scene import Scene
 from .transforms import MJ_FROM_OPTICAL
 
-__all__ = ["FrameState", "EpisodeSim"]
+__all__ = ["FrameState", "EpisodeSim", "element_edges", "max_edge_stretch"]
 
 #: Warnings after which MuJoCo silently resets the state: an episode with one is invalid.
 _FATAL_WARNINGS = (mujoco.mjtWarning.mjWARN_BADQACC, mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL)
+
+
+def element_edges(elements: np.ndarray) -> np.ndarray:
+    """The distinct vertex pairs [K, 2] (sorted, i < j) of elements [E, k] (segments, triangles, tets)."""
+    e = np.asarray(elements, int)
+    if e.ndim != 2 or e.shape[1] < 2:
+        raise ValueError(f"element_edges: elements must be [E, k >= 2], got {list(e.shape)}")
+    pairs = np.concatenate([e[:, [a, b]] for a in range(e.shape[1]) for b in range(a + 1, e.shape[1])])
+    return np.unique(np.sort(pairs, axis=1), axis=0)
+
+
+def max_edge_stretch(points: np.ndarray, edges: np.ndarray, rest_length: np.ndarray) -> float:
+    """The largest ratio of an edge's length to its rest length [K], for vertex positions [N, 3]."""
+    length = np.linalg.norm(points[edges[:, 1]] - points[edges[:, 0]], axis=1)
+    return float(np.max(length / np.maximum(rest_length, 1e-12)))
 
 
 @dataclass
@@ -56,8 +77,13 @@ class FrameState:
 class EpisodeSim:
     """Runs one episode's physics. Use :meth:`settle` once, then iterate :meth:`frames`."""
 
-    def __init__(self, scene: Scene, plan: Plan, effects: ActiveEffects, steps_per_frame: int) -> None:
+    def __init__(self, scene: Scene, plan: Plan, effects: ActiveEffects, steps_per_frame: int,
+                 max_element_stretch: float = 3.0) -> None:
         self.scene = scene
+        self.max_element_stretch = float(max_element_stretch)
+        geom = scene.geometry
+        self._edges = element_edges(geom.elements)
+        self._rest_length = np.linalg.norm(geom.points[self._edges[:, 1]] - geom.points[self._edges[:, 0]], axis=1)
         self.plan = plan
         self.effects = effects
         self.spf = steps_per_frame
@@ -175,4 +201,11 @@ class EpisodeSim:
             bad = sum(d.warning[w].number for w in _FATAL_WARNINGS)
             if bad or not np.all(np.isfinite(d.qpos)):
                 raise RuntimeError(f"simulation diverged at frame {k} (MuJoCo reset the state or it is non-finite)")
-            yield self._state(k)
+            state = self._state(k)
+            stretch = max_edge_stretch(state.object_points.astype(float), self._edges, self._rest_length)
+            if stretch > self.max_element_stretch:
+                raise RuntimeError(
+                    f"simulation diverged at frame {k}: an element of the {s.obj_cfg.kind} is {stretch:.1f}x its rest "
+                    f"length (physics.max_element_stretch {self.max_element_stretch:g}); try a smaller "
+                    f"physics.timestep or more physics.iterations")
+            yield state
