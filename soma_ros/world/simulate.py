@@ -50,10 +50,14 @@ def element_edges(elements: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(pairs, axis=1), axis=0)
 
 
+def edge_lengths(points: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """The lengths [K] of edges [K, 2] for vertex positions [N, 3]."""
+    return np.linalg.norm(points[edges[:, 1]] - points[edges[:, 0]], axis=1)
+
+
 def max_edge_stretch(points: np.ndarray, edges: np.ndarray, rest_length: np.ndarray) -> float:
     """The largest ratio of an edge's length to its rest length [K], for vertex positions [N, 3]."""
-    length = np.linalg.norm(points[edges[:, 1]] - points[edges[:, 0]], axis=1)
-    return float(np.max(length / np.maximum(rest_length, 1e-12)))
+    return float(np.max(edge_lengths(points, edges) / np.maximum(rest_length, 1e-12)))
 
 
 @dataclass
@@ -83,7 +87,7 @@ class EpisodeSim:
         self.max_element_stretch = float(max_element_stretch)
         geom = scene.geometry
         self._edges = element_edges(geom.elements)
-        self._rest_length = np.linalg.norm(geom.points[self._edges[:, 1]] - geom.points[self._edges[:, 0]], axis=1)
+        self._rest_length = edge_lengths(geom.points, self._edges)
         self.plan = plan
         self.effects = effects
         self.spf = steps_per_frame
