@@ -453,3 +453,70 @@ def test_a_non_finite_state_under_the_newton_solver_is_reported_as_divergence_no
         with pytest.raises(SimulationDiverged):
             for t in range(200):
                 s = sim.step(s, RobotAction(cp + torch.tensor([0.0, 0.0, 0.01 * t]), 0.0))
+
+
+def _pinch(centre_xy, angle, opening, cfg=None):
+    """Control points of a gripper pointing straight down with its tips at ``centre_xy`` on the
+    table (z = 0), closing along (cos angle, sin angle, 0), laid out by the robot model's pattern."""
+    import math
+
+    from soma_ros.core.robot import control_point_pattern
+    from soma_ros.core.robot_config import ControlPointConfig
+
+    cfg = cfg or ControlPointConfig(count=30, grid=(5, 3), jaw_length=0.018, jaw_width=0.018)
+    base, side, c = control_point_pattern(cfg)  # ee frame: closing +y, approach +z
+    y_w = torch.tensor([math.cos(angle), math.sin(angle), 0.0], dtype=torch.float64)
+    z_w = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
+    rot = torch.stack([torch.linalg.cross(y_w, z_w), y_w, z_w], dim=1)  # columns: the ee axes in the world
+    local = base + side[:, None] * (opening / 2.0) * c
+    origin = torch.tensor([centre_xy[0], centre_xy[1], 0.0], dtype=torch.float64)
+    return (local @ rot.T + origin).float(), y_w.float()
+
+
+def test_the_closing_axis_comes_from_the_jaws_open_or_touching_and_is_none_when_undefined():
+    from soma_ros.core.physics import closing_axis
+    from soma_ros.core.robot_config import ControlPointConfig
+
+    for opening in (0.03, 0.002, 0.0):
+        cps, axis = _pinch((0.1, -0.05), 0.6, opening)
+        got = closing_axis(cps)
+        assert got is not None and abs(float(got @ axis)) > 0.9999, opening
+    assert closing_axis(_pinch((0.0, 0.0), 0.6, 0.01)[0][:-1]) is None  # an odd count: no jaw pairs
+    line = ControlPointConfig(count=10, grid=(5, 1), jaw_length=0.018, jaw_width=0.0)
+    assert closing_axis(_pinch((0.0, 0.0), 0.6, 0.0, line)[0]) is None  # touching jaws of collinear points
+    assert closing_axis(_pinch((0.0, 0.0), 0.6, 0.01, line)[0]) is not None  # apart: the line between them
+
+
+def test_a_pinching_grasp_gathers_the_held_nodes_onto_the_plane_between_the_pads():
+    pts, m = _sheet(n=600, size=0.2)
+    corner = (0.08, 0.08)
+    cps, axis = _pinch(corner, 0.8, 0.002)
+    hung = {}
+    for gather in (1.0, 0.5, 0.0):
+        p = _params(num_nodes=48, attach_radius=0.04, grasp_gather=gather)
+        lay = build_layout(pts, m, UP, torch.tensor(0.0), p)
+        x = lay.rest.clone()
+        g = grasp_nodes(lay, x, cps, p)
+        assert g is not None and int(g.held.sum()) >= 3
+        centre = cps.mean(dim=0)
+        along = (x - centre) @ axis
+        # the component along the closing axis is scaled by the gather, the rest is the node's offset
+        assert torch.allclose(g.offset @ axis, gather * along, atol=1e-6)
+        across = (x - centre) - along[:, None] * axis
+        assert torch.allclose(g.offset - (g.offset @ axis)[:, None] * axis, across, atol=1e-6)
+        # lifted 0.15 m by the corner and held: the pinched nodes end on the plane between the pads
+        up = torch.tensor([0.0, 0.0, 0.15 / 20.0 / DT])
+        lifted = _run(lay, p, x, 20, cps, closed=True, cp_velocity=up)
+        lifted = _run(lay, p, lifted, 10, cps + torch.tensor([0.0, 0.0, 0.15]), closed=True)
+        top = cps.mean(dim=0) + torch.tensor([0.0, 0.0, 0.15])
+        held_spread = ((lifted[g.held] - top) @ axis).abs().max()
+        hung[gather] = float(held_spread)
+    assert hung[0.0] < 2e-3 < hung[1.0]  # pinched flat vs held where they lay
+    assert hung[0.0] < hung[0.5] < hung[1.0]
+
+
+def test_grasp_gather_outside_zero_to_one_is_a_config_error():
+    with pytest.raises(ConfigError, match="grasp_gather"):
+        PhysicsPrior(_params(grasp_gather=1.5))
+    with pytest.raises(ConfigError, match="grasp_gather"):
+        PhysicsPrior(_params(grasp_gather=-0.1))

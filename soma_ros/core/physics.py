@@ -33,7 +33,9 @@ Model (per step t -> t+1, stateless: everything is read from the simulator's sta
   a substep below its floor kept the push as velocity, and a rope landing on the table bounced).
 * **Gripper** (the action at t+1; control points move linearly from t within the step): when
   the gripper closes, the nodes within ``attach_radius`` of the control points' centroid are
-  grasped, each held at its offset to that centroid (compliance ``grip_compliance``)
+  grasped, each held at its offset to that centroid (compliance ``grip_compliance``), its
+  component along the fingers' closing axis (:func:`closing_axis`) times ``grasp_gather`` (1: held
+  where it was; 0: on the plane between the pads, as a pinch gathers a cloth)
   until the gripper opens (:class:`Grasp`, carried in ``SimState.aux``); free nodes are pushed out
   of ``contact_radius`` around every control point. A **compliant grip** (``PhysicsMods.grip`` =
   g > 0, gripper_slip's ``loosen``) replaces the held nodes' hard constraint by a spring-damper
@@ -228,14 +230,42 @@ def _pressure(lay: PhysicsLayout, x: torch.Tensor, w: torch.Tensor) -> torch.Ten
     return w[None, :] - (t @ w)[:, None] * t
 
 
+def closing_axis(cp: torch.Tensor) -> Optional[torch.Tensor]:
+    """The direction [3] (unit; its sign arbitrary) in which the fingers close, from control points
+    [P, 3] laid out as :func:`soma_ros.core.robot.control_point_pattern` makes them: jaw +1's
+    points, then jaw -1's, mirror images across the plane between the jaws. The line between the
+    jaws' centroids; with the jaws touching (centroids under 0.1 mm apart), the normal of the
+    first jaw's points. None where neither is defined: an odd count, or a jaw whose points are
+    collinear while the jaws touch."""
+    P = cp.shape[0]
+    if P < 2 or P % 2:
+        return None
+    jaw = cp[: P // 2].double()
+    d = jaw.mean(dim=0) - cp[P // 2:].double().mean(dim=0)
+    if float(d.norm()) > 1e-4:
+        return (d / d.norm()).to(cp.dtype)
+    if P // 2 < 3:
+        return None
+    _, s, vh = torch.linalg.svd(jaw - jaw.mean(dim=0), full_matrices=False)
+    if not float(s[1]) > 1e-6 * max(float(s[0]), 1e-12):
+        return None
+    return vh[2].to(cp.dtype)
+
+
 def grasp_nodes(lay: PhysicsLayout, x: torch.Tensor, cp: torch.Tensor, p: "PhysicsPrior.Params") -> Optional[Grasp]:
     """The grasp a gripper closing now makes: the nodes within ``attach_radius`` of the control
-    points' centroid, each held at its offset to it (None: nothing there)."""
+    points' centroid, each held at its offset to it, the offset's component along the closing
+    axis times ``p.grasp_gather`` (None: nothing there)."""
     centre = cp.mean(dim=0)
     held = (x.detach() - centre).norm(dim=-1) <= p.attach_radius  # [K]
     if not bool(held.any()):
         return None
-    return Grasp(held, (x - centre).detach())
+    off = (x - centre).detach()  # [K, 3]
+    if p.grasp_gather < 1.0:
+        axis = closing_axis(cp.detach())
+        if axis is not None:  # the pads pinch what they hold onto the plane between them
+            off = off - (1.0 - p.grasp_gather) * (off @ axis)[:, None] * axis
+    return Grasp(held, off)
 
 
 def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torch.Tensor, plane_normal: torch.Tensor,
@@ -432,6 +462,7 @@ class PhysicsPrior(Effect):
         newton_iterations: int = 2  # Gauss-Newton steps per substep (solver: newton)
         relaxation: float = 1.5
         attach_radius: float = 0.02  # m around the control points' centroid
+        grasp_gather: float = 1.0  # held nodes' offsets along the closing axis times this (0: pinched flat)
         contact_radius: float = 0.006  # m around each control point
         contact_offset_max: float = 0.02  # m: floors of the nodes resting on the table
         grip_threshold: float = 0.5  # gripper state below it: closed
@@ -465,6 +496,8 @@ class PhysicsPrior(Effect):
             raise ConfigError("effect physics: relaxation in (0, 2), gain and grip_threshold in (0, 1) required")
         if not p.release_d1 > p.release_d0 >= 0.0:
             raise ConfigError(f"effect physics: release_d1 > release_d0 >= 0 required, got {p.release_d0}, {p.release_d1}")
+        if not 0.0 <= p.grasp_gather <= 1.0:
+            raise ConfigError(f"effect physics: grasp_gather must be in [0, 1], got {p.grasp_gather}")
         if not 0.0 <= p.friction < 5.0 or p.contact_offset_max < 0:
             raise ConfigError("effect physics: friction in [0, 5) and contact_offset_max >= 0 required")
         f = lambda v: nn.Parameter(torch.tensor(math.log(v)))  # noqa: E731
