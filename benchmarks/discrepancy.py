@@ -43,7 +43,7 @@ import time
 from pathlib import Path
 
 EXPECTED = {"wind": {"wind"}, "air_drag": {"linear_drag", "quadratic_drag"}, "table_friction": {"table_friction"},
-            "slip": {"gripper_slip"}, "heavy": {"mass_scale"}, "stiff": set(), "none": {"none"}}
+            "slip": {"gripper_slip"}, "heavy": {"mass_scale"}, "stiff": {"stiffness_scale"}, "none": {"none"}}
 
 
 def hidden_effects(data: Path) -> list[str]:
