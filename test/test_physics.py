@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
 from benchmarks.physics_solver import lifted_droop
 from soma_ros.core.config import ConfigError, EffectSpec, load_model_config
 from soma_ros.core.effects import EffectContext, build_effect, build_effects
-from soma_ros.core.physics import PhysicsMods, PhysicsPrior, build_layout, grasp_nodes, grip_time_constant, pbd_step
+from soma_ros.core.physics import (PhysicsMods, PhysicsPrior, build_layout, closing_axis, grasp_nodes, grip_time_constant,
+                                   pbd_step)
+from soma_ros.core.robot import control_point_pattern
+from soma_ros.core.robot_config import ControlPointConfig
 from soma_ros.core.scenes import synthetic_rope
 from soma_ros.core.simulator import RobotAction, SceneContext, Simulator
 
@@ -458,11 +463,6 @@ def test_a_non_finite_state_under_the_newton_solver_is_reported_as_divergence_no
 def _pinch(centre_xy, angle, opening, cfg=None):
     """Control points of a gripper pointing straight down with its tips at ``centre_xy`` on the
     table (z = 0), closing along (cos angle, sin angle, 0), laid out by the robot model's pattern."""
-    import math
-
-    from soma_ros.core.robot import control_point_pattern
-    from soma_ros.core.robot_config import ControlPointConfig
-
     cfg = cfg or ControlPointConfig(count=30, grid=(5, 3), jaw_length=0.018, jaw_width=0.018)
     base, side, c = control_point_pattern(cfg)  # ee frame: closing +y, approach +z
     y_w = torch.tensor([math.cos(angle), math.sin(angle), 0.0], dtype=torch.float64)
@@ -474,9 +474,6 @@ def _pinch(centre_xy, angle, opening, cfg=None):
 
 
 def test_the_closing_axis_comes_from_the_jaws_open_or_touching_and_is_none_when_undefined():
-    from soma_ros.core.physics import closing_axis
-    from soma_ros.core.robot_config import ControlPointConfig
-
     for opening in (0.03, 0.002, 0.0):
         cps, axis = _pinch((0.1, -0.05), 0.6, opening)
         got = closing_axis(cps)
