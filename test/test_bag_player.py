@@ -107,6 +107,12 @@ def _ns(stamp) -> int:
     return int(stamp.sec) * 10**9 + int(stamp.nanosec)
 
 
+# The Listener subscribes /joint_states twice (reliable and sensor QoS); the player waits for both. With 1 it
+# could start once the first was matched, before the graph showed the second, which then missed the first
+# messages (a clean-clone run under load: the reliable subscription's first message was the 58th).
+LISTENER_JS_SUBS = "2"
+
+
 class Listener:
     """Subscriptions of the test: reliable /joint_states and images, a sensor-QoS /joint_states
     (as soma_sim_node subscribes), a latched /robot_description."""
@@ -171,7 +177,7 @@ def test_player_plays_with_original_timing_scaled_by_rate(bag, ros_env, ros_cont
 
     # --- rate 2.0, restamped (default), cameras and the latched description too
     out, wall2, achieved2 = _play(listener, ros_executor, ros_env, [
-        str(bag), "--rate", "2.0", "--wait-for-subscribers", "1", "--cameras",
+        str(bag), "--rate", "2.0", "--wait-for-subscribers", LISTENER_JS_SUBS, "--cameras",
         "--topics", "/joint_states", "/robot_description", "--ros-args", "-r", "__node:=player_under_test",
     ], n_img=IMG_N)
     js = listener.got["js"]
@@ -218,7 +224,7 @@ def test_player_plays_with_original_timing_scaled_by_rate(bag, ros_env, ros_cont
 
     # --- rate 1.0, original stamps kept: about twice as long
     out, wall1, achieved1 = _play(listener, ros_executor, ros_env, [
-        str(bag), "--rate", "1.0", "--wait-for-subscribers", "1", "--no-restamp"])
+        str(bag), "--rate", "1.0", "--wait-for-subscribers", LISTENER_JS_SUBS, "--no-restamp"])
     js = listener.got["js"]
     assert len(js) == JS_N, out
     assert [_ns(m.header.stamp) for _, m in js] == [js_time(k) - LATENCY_NS for k in range(JS_N)]
@@ -236,7 +242,7 @@ def test_start_offset_skips_the_beginning(bag, ros_env, ros_context, ros_executo
     # Skip the first second at 4x: JointStates 30..59 remain (t >= 1.0 s), ~0.24 s of playback.
     first = int(np.ceil(1.0 * JS_HZ))
     out, wall, _ = _play(listener, ros_executor, ros_env, [
-        str(bag), "--rate", "4.0", "--start-offset", "1.0", "--wait-for-subscribers", "1",
+        str(bag), "--rate", "4.0", "--start-offset", "1.0", "--wait-for-subscribers", LISTENER_JS_SUBS,
         "--topics", "/joint_states", "/robot_description"], n_js=JS_N - first)
     got = [list(m.position) for _, m in listener.got["js"]]
     assert len(got) == JS_N - first, out
@@ -279,7 +285,7 @@ def test_loop_repeats_until_interrupted(bag, ros_env, ros_context, ros_executor)
     listener = Listener(ros_context)
     ros_executor.add_node(listener.node)
     want = 2 * JS_N + 10
-    with RosProcess(PLAYER, [str(bag), "--rate", "8", "--loop", "--wait-for-subscribers", "1"], ros_env,
+    with RosProcess(PLAYER, [str(bag), "--rate", "8", "--loop", "--wait-for-subscribers", LISTENER_JS_SUBS], ros_env,
                     name="player") as proc:
         ok = spin_until(ros_executor, lambda: len(listener.got["js"]) >= want or not proc.alive(), 40)
         assert ok and proc.alive(), proc.output()
