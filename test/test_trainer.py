@@ -449,3 +449,63 @@ def test_a_non_finite_gradient_skips_the_step_and_keeps_the_weights():
     gn, stepped = clipped_step(opt, [w], 1.0)
     assert stepped and gn == pytest.approx(5.0) and bool(torch.isfinite(w).all())
     assert float(w[0].detach()) < 1.0 and float(w[1].detach()) < 2.0
+
+
+def test_divergence_guard_skips_then_rolls_back_then_stops():
+    from trainer.train import DivergenceGuard
+
+    g = DivergenceGuard(in_a_row=3, max_rollbacks=1, lr_factor=0.5)
+    assert [g.update(i, s, True) for i, s in enumerate([True, False, False, True, False])] == \
+        ["stepped", "skipped", "skipped", "stepped", "skipped"]  # a step taken resets the count
+    assert g.update(5, False, True) == "skipped" and g.lr_scale == 1.0
+    assert g.update(6, False, True) == "rollback" and g.rollbacks == [6] and g.lr_scale == 0.5
+    assert g.skipped == [1, 2, 4, 5, 6]
+    assert [g.update(i, False, True) for i in (7, 8)] == ["skipped", "skipped"]
+    with pytest.raises(RuntimeError, match=r"iterations \[7, 8, 9\]: 3 non-finite .* after 1 rollback"):
+        g.update(9, False, True)
+    with pytest.raises(RuntimeError, match="no validated weights to go back to"):
+        g2 = DivergenceGuard(in_a_row=1)
+        g2.update(0, False, False)
+
+
+def test_a_run_of_non_finite_steps_rolls_back_to_the_kept_weights(lift_dataset, tmp_path, monkeypatch):
+    """Five steps in a row that cannot be taken (a fault injected where the gradient is checked):
+    the loop goes back to the kept weights (here the untrained ones, the only validation so far)
+    with fresh Adam moments and half the learning rate, and finishes; with no rollback allowed it
+    stops with the error."""
+    import trainer.train as T
+    from trainer.config import ConfigError, load_train_config
+
+    with pytest.raises(ConfigError, match="max_rollbacks"):
+        load_train_config("tiny", {"optim": {"max_rollbacks": -1}})
+    over = {"scene": {"photometric_iters": 3, "num_splats": 400},
+            "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 7, "stride": 2, "length_start": 2},
+                         "stage2": {"epochs": 0, "window": 3}},
+            "run": {"val_episodes": 1, "val_frame_stride": 6, "val_every_epochs": 100}}
+    real = T.clipped_step
+    seen: list[dict] = []
+
+    def faulty(opt, params, clip):
+        params = list(params)
+        k = len(seen)
+        seen.append({"checksum": float(sum(p.detach().double().abs().sum() for p in params)),
+                     "adam_state": len(opt.state), "lr": opt.param_groups[0]["lr"]})
+        if 1 <= k <= 5:  # iterations 1-5
+            opt.zero_grad(set_to_none=True)
+            return float("inf"), False
+        return real(opt, params, clip)
+
+    monkeypatch.setattr(T, "clipped_step", faulty)
+    cfg = load_train_config("tiny", over)
+    logs: list = []
+    s = T.train(cfg, lift_dataset, tmp_path / "run", log=lambda *a, **k: logs.append(a[0]))
+    assert s["complete"] and s["skipped_iterations"] == [1, 2, 3, 4, 5] and s["rollbacks"] == [5]
+    assert any("back to the weights of iteration 0" in m for m in logs), logs
+    assert seen[1]["checksum"] != seen[0]["checksum"]  # iteration 0 stepped
+    assert seen[6]["checksum"] == pytest.approx(seen[0]["checksum"], rel=1e-12)  # the untrained weights again
+    assert seen[5]["adam_state"] > 0 and seen[6]["adam_state"] == 0
+    assert seen[6]["lr"] == pytest.approx(0.5 * T.lr_at(cfg, 6)) and seen[0]["lr"] == pytest.approx(T.lr_at(cfg, 0))
+    seen.clear()
+    cfg0 = load_train_config("tiny", {**over, "optim": {"max_rollbacks": 0}})
+    with pytest.raises(RuntimeError, match=r"iterations \[1, 2, 3, 4, 5\]: 5 non-finite .* after 0 rollback"):
+        T.train(cfg0, lift_dataset, tmp_path / "run0", log=lambda *a, **k: None)

@@ -283,6 +283,10 @@ class OptimConfig:
     weight_decay: float = 0.0
     grad_clip: float = 1.0
     lr_final_factor: float = 1.0
+    # after MAX_SKIPPED_IN_A_ROW non-finite losses or gradients in a row: back to the kept (best validated)
+    # weights with fresh Adam moments and the learning rate times rollback_lr_factor, at most this often
+    max_rollbacks: int = 2
+    rollback_lr_factor: float = 0.5
 
     def validate(self, where: str = "optim") -> None:
         if not (self.lr > 0 and math.isfinite(self.lr)):
@@ -291,6 +295,10 @@ class OptimConfig:
             raise ConfigError(f"{where}.betas: two values in [0, 1), got {self.betas}")
         if self.weight_decay < 0 or not self.grad_clip > 0 or not 0 < self.lr_final_factor <= 1:
             raise ConfigError(f"{where}: weight_decay >= 0, grad_clip > 0, lr_final_factor in (0, 1] required")
+        if not isinstance(self.max_rollbacks, int) or self.max_rollbacks < 0:
+            raise ConfigError(f"{where}.max_rollbacks: an integer >= 0, got {self.max_rollbacks!r}")
+        if not 0 < self.rollback_lr_factor < 1:
+            raise ConfigError(f"{where}.rollback_lr_factor: must lie in (0, 1), got {self.rollback_lr_factor}")
 
 
 #: run.keep: the kept weights' criterion (validation), or the latest weights

@@ -240,6 +240,51 @@ def rest_reach(sim: Simulator, margin: float = 0.01) -> Optional[float]:
 MAX_SKIPPED_IN_A_ROW = 5
 
 
+@dataclass
+class DivergenceGuard:
+    """What the training loop does about steps it cannot take (a non-finite loss or gradient).
+
+    One such step is skipped and the weights are kept (:func:`clipped_step`). ``in_a_row`` of
+    them mean the weights themselves have run away (a stiff rollout that blows up from here on,
+    whatever the episode): the loop goes back to the kept weights (the best validation so far)
+    with fresh Adam moments and the learning rate times ``lr_factor`` per rollback, at most
+    ``max_rollbacks`` times; then, or with no validated weights to go back to, it stops with an
+    error. ``skipped`` / ``rollbacks``: the iterations, kept across a resume."""
+
+    in_a_row: int = MAX_SKIPPED_IN_A_ROW
+    max_rollbacks: int = 2
+    lr_factor: float = 0.5
+    skipped: list = field(default_factory=list)
+    rollbacks: list = field(default_factory=list)
+    run: int = 0  # skipped steps in a row now
+
+    @property
+    def lr_scale(self) -> float:
+        return self.lr_factor ** len(self.rollbacks)
+
+    def update(self, it: int, stepped: bool, can_roll_back: bool) -> str:
+        """After iteration ``it``: "stepped", "skipped" or "rollback" (the caller restores the
+        weights); raises RuntimeError when the run cannot go on."""
+        if stepped:
+            self.run = 0
+            return "stepped"
+        self.skipped.append(it)
+        self.run += 1
+        if self.run < self.in_a_row:
+            return "skipped"
+        last = self.skipped[-self.in_a_row:]
+        if not can_roll_back:
+            raise RuntimeError(f"iterations {last}: {self.in_a_row} non-finite losses or gradients in a row and no "
+                               "validated weights to go back to; lower optim.lr or optim.grad_clip")
+        if len(self.rollbacks) >= self.max_rollbacks:
+            raise RuntimeError(f"iterations {last}: {self.in_a_row} non-finite losses or gradients in a row after "
+                               f"{len(self.rollbacks)} rollback(s) (at iterations {self.rollbacks}); lower optim.lr "
+                               "or optim.grad_clip")
+        self.rollbacks.append(it)
+        self.run = 0
+        return "rollback"
+
+
 def clipped_step(opt: torch.optim.Optimizer, params, clip: float) -> tuple[float, bool]:
     """Clip the gradients' total norm to ``clip`` and take the optimiser step; returns (the norm
     before clipping, whether the step was taken). A non-finite gradient (a backward that
@@ -849,7 +894,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
                    "best_val": best_val, "best_score": best_score, "best_criterion": crit,
                    "first_val": first_val, "last_val": last_val, "resumed_from": resumed_from,
                    "val_history": val_history, "best_iteration": best_iteration, "best_model": best_state,
-                   "identified": identified, "skipped_iterations": skipped,
+                   "identified": identified, "skipped_iterations": skipped, "rollbacks": guard.rollbacks,
                    "weights_checksum": _weights_checksum(sim)}
         _atomic_torch_save(payload, state_path)
         info = stage_at(cfg, min(epoch, cfg.schedule.epochs - 1))
@@ -895,6 +940,8 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
     identified = resume.get("identified") if resume is not None else None
     # iterations whose gradient was not finite (no step taken), kept across a resume
     skipped: list[int] = list(resume.get("skipped_iterations", [])) if resume is not None else []
+    guard = DivergenceGuard(MAX_SKIPPED_IN_A_ROW, cfg.optim.max_rollbacks, cfg.optim.rollback_lr_factor, skipped,
+                            list(resume.get("rollbacks", [])) if resume is not None else [])
     if start_it == 0 and first_val is None and cfg.identify.values:
         k = min(cfg.identify.episodes, len(train_names))
         picks = [train_names[int(i)] for i in np.unique(np.linspace(0, len(train_names) - 1, k).round().astype(int))]
@@ -916,7 +963,6 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         bar = tqdm(total=stop, initial=start_it, desc="soma train", unit="it", dynamic_ncols=True)
     it = start_it
     used_episodes: list[str] = []
-    skips_in_a_row = 0
     while it < stop:
         epoch = it // ipe
         info = stage_at(cfg, epoch)
@@ -927,24 +973,30 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         ep = store.episode(name)
         init = store.initial_splats(name)
         plan = plan_rollout(info, name, ep.num_frames, rng, store.contact(name, reach), cfg.schedule.stage1.sim_step)
-        lr = lr_at(cfg, it)
+        lr = lr_at(cfg, it) * guard.lr_scale
         for g in opt.param_groups:
             g["lr"] = lr
         t0 = time.time()
         loss, parts = ddp(ep, init, plan)
-        if not torch.isfinite(loss):
-            raise RuntimeError(f"iteration {it}: the loss is not finite ({float(loss)}) on episode {name}")
+        finite_loss = bool(torch.isfinite(loss.detach()))
+        if dist.distributed:  # every replica decides alike: skip if any replica's loss is not finite
+            finite_loss = dist.all_reduce_sum([0.0 if finite_loss else 1.0])[0] == 0.0
         opt.zero_grad(set_to_none=True)
-        loss.backward()
-        gn, stepped = clipped_step(opt, sim.parameters(), cfg.optim.grad_clip)
-        skips_in_a_row = 0 if stepped else skips_in_a_row + 1
-        if not stepped:
-            skipped.append(it)
-            say(f"iteration {it}: non-finite gradient on episode {name} (loss {float(loss.detach()):.4f}): "
-                "step skipped, weights kept")
-            if skips_in_a_row >= MAX_SKIPPED_IN_A_ROW:
-                raise RuntimeError(f"iterations {skipped[-MAX_SKIPPED_IN_A_ROW:]}: {MAX_SKIPPED_IN_A_ROW} non-finite "
-                                   "gradients in a row; lower optim.lr or optim.grad_clip")
+        if finite_loss:
+            loss.backward()  # (DDP's gradient all-reduce: every replica takes this branch or none)
+            gn, stepped = clipped_step(opt, sim.parameters(), cfg.optim.grad_clip)
+        else:
+            gn, stepped = float("nan"), False
+        what = guard.update(it, stepped, best_state is not None)
+        if what == "skipped":
+            say(f"iteration {it}: non-finite {'gradient' if finite_loss else 'loss'} on episode {name} "
+                f"(loss {float(loss.detach()):.4f}): step skipped, weights kept")
+        elif what == "rollback":
+            sim.load_state_dict(best_state)
+            opt.state.clear()
+            say(f"iteration {it}: {guard.in_a_row} non-finite steps in a row: back to the weights of iteration "
+                f"{best_iteration} (the best validation), fresh Adam moments, learning rate x{guard.lr_scale:g} "
+                f"from here on (rollback {len(guard.rollbacks)} of at most {guard.max_rollbacks})")
         it += 1
         dtime = time.time() - t0
         if runlog is not None:
@@ -969,7 +1021,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
                "val_history": val_history,
                "best_val_loss": best_val, "best_iteration": best_iteration, "kept": cfg.run.keep, "kept_score": best_score, "resumed_from": resumed_from, "seconds": round(time.time() - t_start, 1),
                "train_episodes": train_names, "val_episodes": val_names, "identified": identified,
-               "skipped_iterations": skipped}
+               "skipped_iterations": skipped, "rollbacks": guard.rollbacks}
     if dist.distributed:  # what each replica ends with: identical weights, its own episodes
         (out_dir / "dist").mkdir(exist_ok=True)
         _atomic_write_text(out_dir / "dist" / f"rank_{dist.rank}.json", json.dumps(
