@@ -938,7 +938,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
             runlog.plot(out_dir / "loss.png", f"{cfg.name}: {len(train_names)} train / {len(val_names)} val episodes")
 
     identified = resume.get("identified") if resume is not None else None
-    # iterations whose gradient was not finite (no step taken), kept across a resume
+    # iterations whose loss or gradient was not finite (no step taken), kept across a resume
     skipped: list[int] = list(resume.get("skipped_iterations", [])) if resume is not None else []
     guard = DivergenceGuard(MAX_SKIPPED_IN_A_ROW, cfg.optim.max_rollbacks, cfg.optim.rollback_lr_factor, skipped,
                             list(resume.get("rollbacks", [])) if resume is not None else [])
