@@ -894,7 +894,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
                    "best_val": best_val, "best_score": best_score, "best_criterion": crit,
                    "first_val": first_val, "last_val": last_val, "resumed_from": resumed_from,
                    "val_history": val_history, "best_iteration": best_iteration, "best_model": best_state,
-                   "identified": identified, "skipped_iterations": skipped, "rollbacks": guard.rollbacks,
+                   "identified": identified, "skipped_iterations": guard.skipped, "rollbacks": guard.rollbacks,
                    "weights_checksum": _weights_checksum(sim)}
         _atomic_torch_save(payload, state_path)
         info = stage_at(cfg, min(epoch, cfg.schedule.epochs - 1))
@@ -939,8 +939,8 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
 
     identified = resume.get("identified") if resume is not None else None
     # iterations whose loss or gradient was not finite (no step taken), kept across a resume
-    skipped: list[int] = list(resume.get("skipped_iterations", [])) if resume is not None else []
-    guard = DivergenceGuard(MAX_SKIPPED_IN_A_ROW, cfg.optim.max_rollbacks, cfg.optim.rollback_lr_factor, skipped,
+    guard = DivergenceGuard(MAX_SKIPPED_IN_A_ROW, cfg.optim.max_rollbacks, cfg.optim.rollback_lr_factor,
+                            list(resume.get("skipped_iterations", [])) if resume is not None else [],
                             list(resume.get("rollbacks", [])) if resume is not None else [])
     if start_it == 0 and first_val is None and cfg.identify.values:
         k = min(cfg.identify.episodes, len(train_names))
@@ -1021,7 +1021,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
                "val_history": val_history,
                "best_val_loss": best_val, "best_iteration": best_iteration, "kept": cfg.run.keep, "kept_score": best_score, "resumed_from": resumed_from, "seconds": round(time.time() - t_start, 1),
                "train_episodes": train_names, "val_episodes": val_names, "identified": identified,
-               "skipped_iterations": skipped, "rollbacks": guard.rollbacks}
+               "skipped_iterations": guard.skipped, "rollbacks": guard.rollbacks}
     if dist.distributed:  # what each replica ends with: identical weights, its own episodes
         (out_dir / "dist").mkdir(exist_ok=True)
         _atomic_write_text(out_dir / "dist" / f"rank_{dist.rank}.json", json.dumps(
