@@ -468,6 +468,20 @@ def test_divergence_guard_skips_then_rolls_back_then_stops():
         g2.update(0, False, False)
 
 
+
+def test_divergence_guard_carries_the_count_in_a_row_across_a_resume():
+    """A run stopped after skipped steps and resumed goes on counting them: the saved skipped
+    iterations that end just before the resume point, after the last rollback."""
+    from trainer.train import DivergenceGuard
+
+    g = DivergenceGuard(in_a_row=5, skipped=[3, 7, 8, 9]).resume_at(10)
+    assert g.run == 3
+    assert g.update(10, False, True) == "skipped" and g.update(11, False, True) == "rollback"
+    assert DivergenceGuard(in_a_row=5, skipped=[3, 7, 8, 9]).resume_at(12).run == 0  # a step taken since
+    assert DivergenceGuard(in_a_row=5, skipped=[5, 6, 7, 8, 9], rollbacks=[7]).resume_at(10).run == 2
+    assert DivergenceGuard(in_a_row=5).resume_at(0).run == 0
+
+
 def test_a_run_of_non_finite_steps_rolls_back_to_the_kept_weights(lift_dataset, tmp_path, monkeypatch):
     """Five steps in a row that cannot be taken (a fault injected where the gradient is checked):
     the loop goes back to the kept weights (here the untrained ones, the only validation so far)

@@ -249,7 +249,8 @@ class DivergenceGuard:
     whatever the episode): the loop goes back to the kept weights (the best validation so far)
     with fresh Adam moments and the learning rate times ``lr_factor`` per rollback, at most
     ``max_rollbacks`` times; then, or with no validated weights to go back to, it stops with an
-    error. ``skipped`` / ``rollbacks``: the iterations, kept across a resume."""
+    error. ``skipped`` / ``rollbacks``: the iterations, kept across a resume (the count in a row too:
+    :meth:`resume_at`)."""
 
     in_a_row: int = MAX_SKIPPED_IN_A_ROW
     max_rollbacks: int = 2
@@ -283,6 +284,18 @@ class DivergenceGuard:
         self.rollbacks.append(it)
         self.run = 0
         return "rollback"
+
+    def resume_at(self, it: int) -> "DivergenceGuard":
+        """A run resuming at iteration ``it`` carries on the count of skipped steps in a row: the
+        saved skipped iterations that end at ``it - 1`` without a gap, after the last rollback
+        (which restarted the count). Returns self."""
+        done = set(self.skipped)
+        last_rollback = self.rollbacks[-1] if self.rollbacks else -1
+        k = it - 1
+        while k in done and k > last_rollback:
+            k -= 1
+        self.run = it - 1 - k
+        return self
 
 
 def clipped_step(opt: torch.optim.Optimizer, params, clip: float) -> tuple[float, bool]:
@@ -941,7 +954,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
     # iterations whose loss or gradient was not finite (no step taken), kept across a resume
     guard = DivergenceGuard(MAX_SKIPPED_IN_A_ROW, cfg.optim.max_rollbacks, cfg.optim.rollback_lr_factor,
                             list(resume.get("skipped_iterations", [])) if resume is not None else [],
-                            list(resume.get("rollbacks", [])) if resume is not None else [])
+                            list(resume.get("rollbacks", [])) if resume is not None else []).resume_at(start_it)
     if start_it == 0 and first_val is None and cfg.identify.values:
         k = min(cfg.identify.episodes, len(train_names))
         picks = [train_names[int(i)] for i in np.unique(np.linspace(0, len(train_names) - 1, k).round().astype(int))]
