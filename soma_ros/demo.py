@@ -51,7 +51,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="runs/demo")
     ap.add_argument("--object", default="rope")
     ap.add_argument("--episodes", type=int, default=8)
-    ap.add_argument("--task", default="lift", help="reference-world task of every episode (lift, drag, fold)")
+    ap.add_argument("--task", default="lift", help="reference-world task of every episode (lift, drag, fold, drop)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--train-config", default="config/train/tiny.yaml")
     ap.add_argument("--rate", type=float, default=1.0, help="bag replay rate factor")

@@ -399,3 +399,29 @@ def test_cli_generates(tmp_path):
     assert m["effects"] == ["wind"]
     r = _soma("world", "--object", "rope", "--episodes", "1", "--frames", "8", "--quiet", "--out", str(tmp_path / "d"))
     assert r.returncode == 1 and "--overwrite" in r.stderr
+
+
+def test_drop_lifts_the_rope_then_lets_it_fall_back_onto_the_table(cfg, tmp_path):
+    """The ``drop`` task lifts as ``lift`` does, then opens the fingers (pick and let go): the rope's
+    ground-truth points rise well off the table while held and lie on it at the end; the plan's
+    release time is in the sidecar."""
+    import copy
+
+    c = copy.deepcopy(cfg)
+    c.tasks["rope"] = ["drop"]
+    m = generate_dataset(c, "rope", "tiny", tmp_path, episodes=1, seed=0, task="drop", frames=60, progress=False)
+    ep = m["episodes"][0]
+    assert ep["task"] == "drop"
+    meta = json.loads((tmp_path / f"{ep['name']}.meta.json").read_text())
+    release = meta["plan"]["release_time"]
+    bag = read_bag(tmp_path / ep["bag"])
+    top = np.array([np.frombuffer(msg.data, np.float32).reshape(-1, 3)[:, 2].max() for _, msg in bag[OBJECT_POINTS_TOPIC]])
+    table = cfg.table.height
+    assert top.max() > table + 0.08, top.max() - table  # carried up
+    assert int(top.argmax()) < 0.8 * len(top)  # ... before the end
+    assert top[-1] < table + 0.03, top[-1] - table  # let go: back on the table (radius 6.5 mm + resting)
+    assert 0.0 < release < 59 / 30.0 and int(top.argmax()) >= int(release * 30.0) - 2  # highest about when it opens
+    with pytest.raises(ValueError, match="unknown task"):
+        bad = copy.deepcopy(cfg)
+        bad.tasks["rope"] = ["throw"]
+        bad.validate()

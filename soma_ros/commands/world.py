@@ -96,7 +96,7 @@ def register(subparsers) -> None:
         help="comma-separated physical effects to switch on: wind,air_drag,table_friction,slip,stiff,heavy "
         "(default: none)",
     )
-    p.add_argument("--task", default=None, choices=["lift", "drag", "fold"], help="force one task for every episode")
+    p.add_argument("--task", default=None, choices=["lift", "drag", "fold", "drop"], help="force one task for every episode")
     p.add_argument("--frames", type=int, default=None, metavar="N", help="override the frames per episode (>= 8)")
     p.add_argument("--storage", default="sqlite3", choices=["sqlite3", "mcap"], help="rosbag2 storage (default: sqlite3)")
     p.add_argument("--config", default="world/default", metavar="YAML",

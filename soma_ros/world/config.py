@@ -53,8 +53,9 @@ __all__ = [
 #: Objects the world can simulate.
 OBJECTS = ("rope", "cloth", "doll")
 #: Manipulation tasks: ``lift`` = grasp-and-lift, ``drag`` = grasp and drag on the
-#: table, ``fold`` = grasp one side of a cloth and lay it over the other.
-TASKS = ("lift", "drag", "fold")
+#: table, ``fold`` = grasp one side of a cloth and lay it over the other, ``drop`` =
+#: lift as ``lift`` does, then open the fingers: the object falls back onto the table.
+TASKS = ("lift", "drag", "fold", "drop")
 #: Switchable physical effects (all off by default).
 EFFECTS = ("wind", "air_drag", "table_friction", "slip", "stiff", "heavy")
 
