@@ -362,20 +362,22 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
                 free = 1.0 - heldf if heldf is not None else 1.0
                 q = q + pen[:, None] * dirn * free
         depth = (lay.floor - (q @ nrm + off)).clamp_min(0.0)  # [K] the table
-        if bool((depth > 0).any()):
+        touch = depth > 0  # [K]
+        touching = bool(touch.any())
+        if touching:
             q = q + depth[:, None] * nrm
             dxt = q - x
             dxt = dxt - (dxt @ nrm)[:, None] * nrm
             st = dxt.norm(dim=-1).clamp_min(1e-12)
             keepf = (1.0 - mu * depth / st).clamp_min(0.0)
-            q = q - dxt * ((1.0 - keepf) * (depth > 0).to(q.dtype))[:, None]
+            q = q - dxt * ((1.0 - keepf) * touch.to(q.dtype))[:, None]
         v = (q - x) / h
-        if p.inelastic_table and bool((depth > 0).any()):
+        if p.inelastic_table and touching:
             # a node the table pushed back out leaves the substep with no velocity away from it: the
             # push undoes a penetration (one that began before the substep included), it is not a
             # bounce (without this, 1 mm below the floor at a substep's start leaves it at 0.5 m/s)
             vn = v @ nrm
-            v = v - ((depth > 0).to(v.dtype) * vn.clamp_min(0.0))[:, None] * nrm
+            v = v - (touch.to(v.dtype) * vn.clamp_min(0.0))[:, None] * nrm
         x = q
     release = float(mods.release.detach()) if mods.release is not None else 0.0
     if grasp is not None and release != 0.0:  # the load (times the mass factor, 1 / w_inv) against the capacity
