@@ -515,6 +515,9 @@ def test_a_run_of_non_finite_steps_rolls_back_to_the_kept_weights(lift_dataset, 
     s = T.train(cfg, lift_dataset, tmp_path / "run", log=lambda *a, **k: logs.append(a[0]))
     assert s["complete"] and s["skipped_iterations"] == [1, 2, 3, 4, 5] and s["rollbacks"] == [5]
     assert any("back to the weights of iteration 0" in m for m in logs), logs
+    # the last lines say which weights checkpoint.pt holds, and whether training beat the untrained ones
+    assert any(m.startswith(f"kept iteration {s['best_iteration']} in checkpoint.pt") for m in logs), logs
+    assert any("did not improve on the untrained" in m for m in logs) == (s["best_iteration"] == 0), logs
     assert seen[1]["checksum"] != seen[0]["checksum"]  # iteration 0 stepped
     assert seen[6]["checksum"] == pytest.approx(seen[0]["checksum"], rel=1e-12)  # the untrained weights again
     assert seen[5]["adam_state"] > 0 and seen[6]["adam_state"] == 0

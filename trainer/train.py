@@ -1043,6 +1043,12 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         dist.barrier()
     if dist.is_main:
         _atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=1))
+    if best_iteration is not None and first_val is not None:
+        say(f"kept iteration {best_iteration} in checkpoint.pt (validation loss {best_val:.5f}; untrained "
+            f"{first_val:.5f}; last {last_val:.5f})")
+        if best_iteration == 0 and it > 0:
+            say("training did not improve on the untrained model's validation: checkpoint.pt holds the untrained "
+                "weights, checkpoint_last.pt the last ones")
     return summary
 
 
