@@ -468,7 +468,6 @@ def test_divergence_guard_skips_then_rolls_back_then_stops():
         g2.update(0, False, False)
 
 
-
 def test_divergence_guard_carries_the_count_in_a_row_across_a_resume():
     """A run stopped after skipped steps and resumed goes on counting them: the saved skipped
     iterations that end just before the resume point, after the last rollback."""

@@ -1043,7 +1043,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         dist.barrier()
     if dist.is_main:
         _atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=1))
-    if best_iteration is not None and first_val is not None:
+    if cfg.run.keep != "last" and best_iteration is not None and first_val is not None:
         say(f"kept iteration {best_iteration} in checkpoint.pt (validation loss {best_val:.5f}; untrained "
             f"{first_val:.5f}; last {last_val:.5f})")
         if best_iteration == 0 and it > 0:
