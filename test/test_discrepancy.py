@@ -248,7 +248,7 @@ def test_config_rejects_unknown_candidates():
         load_discrepancy_config("fast", {"candidates": ["no_such_effect"]})
 
 
-def test_candidates_are_fitted_as_direct_effects_and_recover_a_hidden_wind():
+def test_candidates_are_fitted_as_direct_effects_and_recover_a_hidden_wind(monkeypatch):
     """Mechanics of fit_effect with ``direct`` (the config default): the candidate is added as a
     direct effect, and with the world = the same random model + a direct wind the fit recovers it."""
     from soma_ros.core.config import load_model_config
@@ -288,6 +288,32 @@ def test_candidates_are_fitted_as_direct_effects_and_recover_a_hidden_wind():
     grid = load_discrepancy_config("fast", {"fit_iters": 2, "fit_lr": 0.01, "grid_start": [-2, -1, 1, 2]})
     gridded = fit_effect(sim, "wind", [ob], scene, grid, 2, log=lambda *a: None)[2]
     assert abs(plain["accel"][1]) < 1.0 and abs(gridded["accel"][1] - 9.81) < 0.5, (plain, gridded)
+    # the step sizes follow the cosine decay, a step whose gradient is not finite (not taken) counted
+    # as one; a fit whose first gradient is such raises no scheduler warning (torch's LambdaLR did)
+    import trainer.discrepancy as D
+
+    lrs, checks = [], []
+    real_step, real_finite = torch.optim.Adam.step, D._finite_grads
+
+    def step(self, *a, **k):
+        lrs.append(self.param_groups[0]["lr"])
+        return real_step(self, *a, **k)
+
+    def finite_after_the_first(params):
+        checks.append(1)
+        return len(checks) > 1 and real_finite(params)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", step)
+    monkeypatch.setattr(D, "_finite_grads", finite_after_the_first)
+    four = load_discrepancy_config("fast", {"fit_iters": 4, "fit_lr": 0.1})
+    with __import__("warnings").catch_warnings(record=True) as caught:
+        __import__("warnings").simplefilter("always")
+        fit_effect(sim, "wind", [ob], scene, four, 4, log=lambda *a: None)
+    assert len(checks) == 4 and len(lrs) == 3
+    assert not [w for w in caught if "lr_scheduler" in str(w.message)], [str(w.message) for w in caught]
+    f = four.fit_lr_final
+    decay = [f + (1 - f) * 0.5 * (1 + math.cos(math.pi * k / 4)) for k in (1, 2, 3)]
+    assert [x / lrs[0] for x in lrs] == pytest.approx([d / decay[0] for d in decay])
     with pytest.raises(ValueError, match="grid_episodes"):
         load_discrepancy_config("fast", {"grid_episodes": 0})
     # an unstable model (here a field of NaN) stops with SimulationDiverged at the first bad step: the

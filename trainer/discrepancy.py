@@ -510,6 +510,11 @@ def decide(explained: dict[str, float], samples: dict[str, np.ndarray], alpha: f
 
 
 # --------------------------------------------------------------------------- fitting
+def _finite_grads(params: Sequence[torch.Tensor]) -> bool:
+    """Whether every parameter's gradient is finite (or absent): a step with it can be taken."""
+    return all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in params)
+
+
 def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: SceneContext,
                cfg: DiscrepancyConfig, iters: int, log: Callable[[str], None] = print,
                key: Optional[str] = None) -> tuple[Simulator, list[float], dict]:
@@ -537,10 +542,14 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
         scale = getattr(model.effects[key], "fit_scale", {}) or {}
         groups = [{"params": [p], "lr": cfg.fit_lr * float(scale.get(n, 1.0))} for n, p in named]
         opt = torch.optim.Adam(groups, lr=cfg.fit_lr)
+        base_lr = [g["lr"] for g in opt.param_groups]
         # cosine decay of every step size to fit_lr_final of its start: big steps to reach a
-        # large effect, small ones to settle on it
-        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: cfg.fit_lr_final + (1.0 - cfg.fit_lr_final) * 0.5
-                                                  * (1.0 + math.cos(math.pi * min(k, iters) / iters)))
+        # large effect, small ones to settle on it. Set by hand, k = the steps counted so far (a
+        # non-finite gradient's step is counted, not taken): torch's LambdaLR warned on every
+        # fit whose first gradient was not finite, though the schedule it kept was this one
+        decay = lambda k: cfg.fit_lr_final + (1.0 - cfg.fit_lr_final) * 0.5 * (  # noqa: E731
+            1.0 + math.cos(math.pi * min(k, iters) / iters))
+        counted = 0
         rng = np.random.default_rng(cfg.seed)
         order: list[int] = []
         avg = [torch.zeros_like(p) for p in params]
@@ -561,10 +570,12 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
             if not loss.requires_grad:
                 continue
             loss.backward()
-            if all(p.grad is None or torch.isfinite(p.grad).all() for p in params):
+            if _finite_grads(params):
+                for g, lr0 in zip(opt.param_groups, base_lr):
+                    g["lr"] = lr0 * decay(counted)
                 opt.step()
                 model.effects[key].project_()  # inside the term's physical range (Effect.bounds)
-            sched.step()
+            counted += 1
             if it >= iters // 2:
                 for a, p in zip(avg, params):
                     a.add_(p.detach())
