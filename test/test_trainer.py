@@ -429,6 +429,7 @@ def test_identify_sets_the_physics_priors_coefficient_with_the_lowest_score(lift
     assert not set(ident["episodes"]) & set(s["val_episodes"]) and len(ident["episodes"]) == 2
     sd = read_checkpoint(run / "checkpoint.pt")["state_dict"]
     assert float(sd["effects.terms.physics.log_bend"]) == pytest.approx(math.log(ident["chosen"]), rel=1e-6)
+    assert not sd["gnn.decoder.net.2.weight"].any()  # the config's zero start: the untrained model is the prior alone
     assert any(m.startswith("identify: bend = ") for m in logs), logs
     with pytest.raises(ValueError, match="exactly one effect 'physics'"):
         train(load_train_config("tiny", {**over, "run": {"val_episodes": 1}}), lift_dataset, tmp_path / "run2",
