@@ -161,19 +161,17 @@ def _segments(task: str, p_grasp: np.ndarray, geom: ObjectGeometry, obj: ObjectC
     def add(f0, f1, a, b, g0, g1, name):
         segs.append(Segment(f0 * T, f1 * T, np.asarray(a, float), np.asarray(b, float), g0, g1, name))
 
-    if task == "lift":
+    if task in ("lift", "drop"):  # drop: lifted as in lift, but sooner, then the fingers open over the table
         top = p_grasp + np.array([rng.uniform(-0.03, 0.03), rng.uniform(-0.03, 0.03), u(motion.lift_height)])
         add(0.0, 0.30, hover, p_grasp, open_gap, open_gap, "descend")
         add(0.30, 0.40, p_grasp, p_grasp, open_gap, closed, "close")
-        add(0.42, 0.85, p_grasp, top, closed, closed, "lift")
-        add(0.85, 1.0, top, top, closed, closed, "hold")
-    elif task == "drop":  # pick and let go: lifted as in lift, then the fingers open over the table
-        top = p_grasp + np.array([rng.uniform(-0.03, 0.03), rng.uniform(-0.03, 0.03), u(motion.lift_height)])
-        add(0.0, 0.30, hover, p_grasp, open_gap, open_gap, "descend")
-        add(0.30, 0.40, p_grasp, p_grasp, open_gap, closed, "close")
-        add(0.42, 0.70, p_grasp, top, closed, closed, "lift")
-        add(0.70, 0.76, top, top, closed, open_gap, "open")
-        add(0.76, 1.0, top, top, open_gap, open_gap, "hold")
+        if task == "lift":
+            add(0.42, 0.85, p_grasp, top, closed, closed, "lift")
+            add(0.85, 1.0, top, top, closed, closed, "hold")
+        else:
+            add(0.42, 0.70, p_grasp, top, closed, closed, "lift")
+            add(0.70, 0.76, top, top, closed, open_gap, "open")
+            add(0.76, 1.0, top, top, open_gap, open_gap, "hold")
     elif task == "drag":
         dist = u(motion.drag_distance)
         raised = p_grasp + np.array([0.0, 0.0, motion.drag_lift])
