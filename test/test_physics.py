@@ -517,3 +517,73 @@ def test_grasp_gather_outside_zero_to_one_is_a_config_error():
         PhysicsPrior(_params(grasp_gather=1.5))
     with pytest.raises(ConfigError, match="grasp_gather"):
         PhysicsPrior(_params(grasp_gather=-0.1))
+
+
+# --------------------------------------------------------------------------- the rod's bending
+def _rod_params(**kw) -> PhysicsPrior.Params:
+    return PhysicsPrior.Params(**{"num_nodes": 40, "substeps": 16, "solver": "newton", "newton_iterations": 1,
+                                  "bend_model": "rod", "grip_compliance": 1e-11, **kw})
+
+
+def _round_rope(n=600, length=0.34, top=0.5, seed=0, arc=0.0):
+    """Splats on the surface of a rope 1 cm thick whose centre line runs along x at height ``top``
+    (``arc`` > 0: bent in the horizontal plane into a circular arc turning by that many radians)."""
+    g = torch.Generator().manual_seed(seed)
+    s = torch.rand(n, generator=g) * length
+    a = torch.rand(n, generator=g) * 2 * math.pi
+    if arc > 0:
+        r = length / arc
+        centre = torch.stack([r * torch.sin(s / r), r - r * torch.cos(s / r)], dim=-1)
+        side = torch.stack([-torch.sin(s / r), torch.cos(s / r)], dim=-1)
+    else:
+        centre, side = torch.stack([s, torch.zeros_like(s)], dim=-1), torch.stack([torch.zeros_like(s), torch.ones_like(s)], dim=-1)
+    xy = centre + 0.005 * torch.cos(a)[:, None] * side
+    return torch.cat([xy, (top + 0.005 * torch.sin(a))[:, None]], dim=-1), torch.full((n,), 0.04 / n)
+
+
+def test_the_rod_layout_is_a_chain_along_the_centre_line_of_a_bent_rope():
+    pts, m = _round_rope(top=0.0065, arc=2.0)
+    lay = build_layout(pts, m, UP, torch.tensor(0.0), _rod_params())
+    assert lay.num_nodes == 40 and lay.tri is not None and lay.tri.shape == (3, 38)
+    edges = (lay.rest[1:] - lay.rest[:-1]).norm(dim=-1)
+    assert float(edges.max()) < 1.6 * float(edges.median())  # consecutive cells are neighbours, no jumps
+    r = 0.34 / 2.0  # the arc's radius: the nodes go round it in order, at the rope's centre line
+    phi = torch.atan2(lay.rest[:, 0], r - lay.rest[:, 1])
+    dphi = phi[1:] - phi[:-1]
+    assert bool((dphi > 0).all()) or bool((dphi < 0).all())
+    assert float(((lay.rest[:, :2] - torch.tensor([0.0, r])).norm(dim=-1) - r).abs().max()) < 0.004
+    assert bool((lay.si + 1 == lay.sj).all()) and not bool(lay.bend.any())  # stretch along the chain only
+
+
+def test_a_clamped_rod_droops_as_an_euler_bernoulli_cantilever_and_rests_where_it_lies():
+    """``bend_compliance`` c of the rod is rho A / (4 EI): a rope clamped at one end droops under its
+    own weight by w L^4 / (8 EI) = c g L^4 / 2 while that is small, so linearly in c."""
+    pts, m = _round_rope()
+    drop = {}
+    for c in (0.1, 0.3):
+        p = _rod_params(bend_compliance=c, damping=20.0)
+        lay = build_layout(pts, m, UP, torch.tensor(0.0), p)
+        end = lay.rest[lay.rest[:, 0].argmin()]
+        cp = torch.stack([end + torch.tensor([0.01, 0.003, 0.0]), end + torch.tensor([0.01, -0.003, 0.0])])
+        x = _run(lay, p, lay.rest.clone(), 150, cp, True)
+        held = grasp_nodes(lay, lay.rest, cp, p).held
+        tip = int(lay.rest[:, 0].argmax())
+        free = float(lay.rest[tip, 0] - lay.rest[held, 0].max())  # the free length beyond the clamp
+        drop[c] = float(lay.rest[tip, 2] - x[tip, 2])
+        theory = c * 9.81 * free ** 4 / 2
+        assert 0.9 * theory < drop[c] < 1.4 * theory, (c, drop[c], theory)
+    assert 2.7 < drop[0.3] / drop[0.1] < 3.3  # linear in the compliance
+    # a bent rope lying on the table with the fingers near it: its rest shape is its own, nothing moves
+    pts, m = _round_rope(top=0.0065, arc=2.0)
+    p = _rod_params(bend_compliance=1.0)
+    lay = build_layout(pts, m, UP, torch.tensor(0.0), p)
+    cp = lay.rest[:2] + torch.tensor([0.0, 0.0, 0.03])
+    x = _run(lay, p, lay.rest.clone(), 10, cp)
+    assert float((x - lay.rest).abs().max()) < 1e-6
+
+
+def test_the_rod_bending_model_needs_the_newton_solver_and_a_known_name():
+    with pytest.raises(ConfigError, match="bend_model"):
+        PhysicsPrior(_rod_params(bend_model="beam"))
+    with pytest.raises(ConfigError, match="newton"):
+        PhysicsPrior(_rod_params(solver="jacobi"))

@@ -436,6 +436,34 @@ def test_identify_sets_the_physics_priors_coefficient_with_the_lowest_score(lift
               max_iterations=0, log=lambda *a, **k: None)
 
 
+def test_the_rod_config_identifies_the_rods_bending_on_a_reference_world_rope(lift_dataset, tmp_path):
+    """``tiny_physics_rod``: the prior's nodes are a chain along the recorded rope's centre line and
+    its bending compliance (the rod's, rho A / (4 EI)) is identified from the data like the pairs'."""
+    from soma_ros.core.physics import PhysicsPrior, build_layout
+    from trainer.config import load_train_config
+    from trainer.train import load_scene, train
+
+    over = {"scene": {"photometric_iters": 3, "num_splats": 400},
+            "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 1, "stride": 2, "length_start": 2},
+                         "stage2": {"epochs": 0, "window": 3}},
+            "run": {"val_episodes": 1, "val_frame_stride": 6},
+            "identify": {"coefficient": "bend", "values": [1.0, 100.0], "episodes": 2}}
+    cfg = load_train_config("tiny_physics_rod", over)
+    run = tmp_path / "run"
+    s = train(cfg, lift_dataset, run, max_iterations=0, log=lambda *a, **k: None)
+    losses = [r["val_loss"] for r in s["identified"]["rows"]]
+    assert all(math.isfinite(v) for v in losses) and losses[0] != losses[1]  # the rod's stiffness changes the rollouts
+    bundle, _ = load_scene(run / "scene")
+    spec = next(e for e in cfg.model_config().effects if e.name == "physics")
+    params = PhysicsPrior.Params(**spec.params)
+    sc = bundle.scene_context()
+    lay = build_layout(bundle.splats.means.detach().double(), bundle.splats.mass.detach().double(),
+                       torch.as_tensor(sc.plane_normal).double().reshape(3), torch.tensor(float(sc.plane_offset)).double(),
+                       params)
+    edges = (lay.rest[1:] - lay.rest[:-1]).norm(dim=-1)
+    assert lay.tri is not None and lay.num_nodes >= 24 and float(edges.max()) < 3.0 * float(edges.median())
+
+
 def test_a_non_finite_gradient_skips_the_step_and_keeps_the_weights():
     from trainer.train import clipped_step
 

@@ -24,6 +24,13 @@ Model (per step t -> t+1, stateless: everything is read from the simulator's sta
   node system (:func:`_newton_project`). Long bending pairs make a rope or cloth as stiff as its
   compliances say with the Gauss-Newton solve; with a few Jacobi passes the passes, not the
   compliances, set how stiff a long object is (``python -m benchmarks.physics_solver``).
+  **Rod** (``bend_model: rod``, ropes, Newton solver): the nodes are instead cells of equal length
+  along the rope's centre line (:func:`centre_line_cells`), stretch acts between consecutive ones
+  and bending on consecutive triples with an elastic rod's energy, quadratic in the turning angle
+  from the rest shape (:func:`_newton_project`). A distance pair's length changes only to second
+  order in a small bend, so the pairs' bending has no stiffness at small angles and grows with the
+  bend; a rope held near one end then leaves the fingers straighter and kinks further out than an
+  elastic rod does (docs/discrepancy.md, session 27).
 * **Gravity** from the scene, still-air damping ``exp(-damping h)`` per substep.
 * **Table**: a node may not go below its initial height above the plane (capped at
   ``contact_offset_max``, so nodes resting on the table stay where they were reconstructed);
@@ -80,6 +87,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Optional
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -144,6 +152,14 @@ class PhysicsLayout:
     skin_w: torch.Tensor  # [N, k]
     spacing: float
     sheet: bool
+    # bend_model "rod": the nodes are a chain along the object's centre line and bending acts on its
+    # triples (a, i, b) = (i-1, i, i+1): tri [3, B]; tri_u0 [B, 3] the rest offset of node i from the
+    # midpoint of a and b and tri_t0 [B, 3] the rest chord b - a (unit); tri_len [B] the mean rest
+    # length of the two edges (None for "pairs")
+    tri: Optional[torch.Tensor] = None
+    tri_u0: Optional[torch.Tensor] = None
+    tri_t0: Optional[torch.Tensor] = None
+    tri_len: Optional[torch.Tensor] = None
 
     @property
     def num_nodes(self) -> int:
@@ -169,6 +185,45 @@ def _is_sheet(rest: torch.Tensor) -> bool:
 
 
 @torch.no_grad()
+def centre_line_cells(x: torch.Tensor, k: int, neighbours: int = 10) -> tuple[torch.Tensor, int]:
+    """Cells of a line object's points x [N, 3] along its centre line: ([N] cell index, cell count).
+
+    The points' geodesic distance from one end of the object (shortest paths through the graph of
+    each point's ``neighbours`` nearest ones, pieces of the cloud that a gap leaves unconnected
+    joined by their closest pair of points; the end: the point farthest from an arbitrary one
+    along the graph) is cut into ``k`` intervals of equal length, cell 0 at that end. Empty
+    intervals (a gap in the cloud) are dropped, so the count can be below ``k``. The cells are in
+    order along the line: cell i and i + 1 are neighbours."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components, dijkstra
+    from scipy.spatial import cKDTree
+
+    pts = x.detach().double().cpu().numpy()
+    n = len(pts)
+    nb = min(neighbours, n - 1)
+    dist, idx = cKDTree(pts).query(pts, k=nb + 1)
+    rows, cols, w = list(np.repeat(np.arange(n), nb)), list(idx[:, 1:].reshape(-1)), list(dist[:, 1:].reshape(-1))
+    while True:
+        g = coo_matrix((np.maximum(w, 1e-12), (rows, cols)), shape=(n, n)).tocsr()
+        g = g.maximum(g.T)
+        count, label = connected_components(g, directed=False)
+        if count == 1:
+            break
+        inside = np.flatnonzero(label == label[0])  # join the first piece to its nearest point outside it
+        outside = np.flatnonzero(label != label[0])
+        d, j = cKDTree(pts[outside]).query(pts[inside])
+        i = int(np.argmin(d))
+        rows.append(int(inside[i]))
+        cols.append(int(outside[j[i]]))
+        w.append(float(d[i]))
+    end = int(np.argmax(dijkstra(g, indices=0)))
+    s = dijkstra(g, indices=end)
+    b = np.floor(s / max(float(s.max()), 1e-12) * k).clip(0, k - 1).astype(np.int64)
+    used, cell = np.unique(b, return_inverse=True)
+    return torch.as_tensor(cell.reshape(-1), device=x.device), int(len(used))
+
+
+@torch.no_grad()
 def build_layout(rest_splats: torch.Tensor, masses: torch.Tensor, plane_normal: torch.Tensor,
                  plane_offset: torch.Tensor, p: "PhysicsPrior.Params") -> PhysicsLayout:
     """Nodes, constraints, floors and skinning of an episode from its initial splats [N, 3]."""
@@ -178,9 +233,13 @@ def build_layout(rest_splats: torch.Tensor, masses: torch.Tensor, plane_normal: 
     if n < 2:
         raise ValueError(f"physics prior: need at least 2 splats, got {n}")
     K = min(int(p.num_nodes), n)
-    seeds = x[farthest_point_sampling(x.cpu(), K).to(dev)]
-    node_of = torch.cdist(x, seeds).argmin(dim=1)  # [N]
     m = masses.detach().to(dt_)
+    tri = tri_u0 = tri_t0 = tri_len = None
+    if p.bend_model == "rod":
+        node_of, K = centre_line_cells(x, K)
+    else:
+        seeds = x[farthest_point_sampling(x.cpu(), K).to(dev)]
+        node_of = torch.cdist(x, seeds).argmin(dim=1)  # [N]
     node_mass = torch.zeros(K, dtype=dt_, device=dev).index_add_(0, node_of, m)
     keep = node_mass > 0  # every seed owns itself, but be safe
     if not bool(keep.all()):
@@ -191,16 +250,30 @@ def build_layout(rest_splats: torch.Tensor, masses: torch.Tensor, plane_normal: 
     rest = torch.zeros(K, 3, dtype=dt_, device=dev).index_add_(0, node_of, m[:, None] * x) / node_mass[:, None]
     d = torch.cdist(rest, rest)
     d.fill_diagonal_(math.inf)
-    spacing = max(float(d.min(dim=1).values.median()), 1e-6) if K > 1 else 1e-3
-    dc = d.cpu()
-    stretch = neighbour_pairs(dc, p.neighbors, p.spring_radius_factor * spacing)
-    bend = neighbour_pairs(dc, p.bend_neighbors, p.bend_radius_factor * spacing, skip=p.neighbors)
-    if bend.numel() and stretch.numel():  # a pair that is a stretch pair stays one
-        ks = set((stretch[0] * K + stretch[1]).tolist())
-        bend = bend[:, torch.tensor([int(a) * K + int(b) not in ks for a, b in bend.t()], dtype=torch.bool)]
-    pairs = torch.cat([stretch, bend], dim=1).to(dev)
-    is_bend = torch.cat([torch.zeros(stretch.shape[1], dtype=torch.bool),
-                         torch.ones(bend.shape[1], dtype=torch.bool)]).to(dev)
+    if p.bend_model == "rod":  # a chain: stretch along consecutive nodes, bending on consecutive triples
+        if K < 3:
+            raise ValueError(f"physics prior (bend_model rod): need at least 3 nodes along the centre line, got {K}")
+        i = torch.arange(K - 1)
+        pairs = torch.stack([i, i + 1]).to(dev)
+        is_bend = torch.zeros(K - 1, dtype=torch.bool, device=dev)
+        spacing = max(float((rest[1:] - rest[:-1]).norm(dim=-1).median()), 1e-6)
+        j = torch.arange(1, K - 1, device=dev)
+        tri = torch.stack([j - 1, j, j + 1])
+        tri_u0 = rest[j] - 0.5 * (rest[j - 1] + rest[j + 1])  # the rest shape as it lies: no force at rest
+        tri_t0 = rest[j + 1] - rest[j - 1]
+        tri_t0 = tri_t0 / tri_t0.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        tri_len = 0.5 * ((rest[j] - rest[j - 1]).norm(dim=-1) + (rest[j + 1] - rest[j]).norm(dim=-1)).clamp_min(1e-6)
+    else:
+        spacing = max(float(d.min(dim=1).values.median()), 1e-6) if K > 1 else 1e-3
+        dc = d.cpu()
+        stretch = neighbour_pairs(dc, p.neighbors, p.spring_radius_factor * spacing)
+        bend = neighbour_pairs(dc, p.bend_neighbors, p.bend_radius_factor * spacing, skip=p.neighbors)
+        if bend.numel() and stretch.numel():  # a pair that is a stretch pair stays one
+            ks = set((stretch[0] * K + stretch[1]).tolist())
+            bend = bend[:, torch.tensor([int(a) * K + int(b) not in ks for a, b in bend.t()], dtype=torch.bool)]
+        pairs = torch.cat([stretch, bend], dim=1).to(dev)
+        is_bend = torch.cat([torch.zeros(stretch.shape[1], dtype=torch.bool),
+                             torch.ones(bend.shape[1], dtype=torch.bool)]).to(dev)
     rest_len = (rest[pairs[0]] - rest[pairs[1]]).norm(dim=-1).clamp_min(1e-6)
     degree = torch.bincount(pairs.reshape(-1), minlength=K).to(dt_)
     nrm = plane_normal.detach().to(dt_)
@@ -208,7 +281,8 @@ def build_layout(rest_splats: torch.Tensor, masses: torch.Tensor, plane_normal: 
     ci, w = skin_weights(x, rest, p.skin_neighbors, spacing)
     return PhysicsLayout(node_of=node_of, node_mass=node_mass, rest=rest, si=pairs[0], sj=pairs[1],
                          rest_len=rest_len, bend=is_bend, degree=degree, floor=floor, skin_idx=ci, skin_w=w.to(dt_),
-                         spacing=spacing, sheet=_is_sheet(rest))
+                         spacing=spacing, sheet=_is_sheet(rest), tri=tri, tri_u0=tri_u0, tri_t0=tri_t0,
+                         tri_len=tri_len)
 
 
 def _pressure(lay: PhysicsLayout, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
@@ -294,6 +368,12 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
     h2 = h * h
     stiff = torch.exp(mods.stiffness) if mods.stiffness is not None else None
     alpha = torch.where(lay.bend, coef["bend"], coef["stretch"]) / (h2 * lay.rest_len)  # [E]
+    rod = None
+    if lay.tri is not None:  # the rod's bending: compliance per unit node mass, coef x l^4 (see _newton_project)
+        a_tri = coef["bend"] * lay.tri_len.to(x.dtype) ** 4 / h2  # [B]
+        if stiff is not None:
+            a_tri = a_tri / stiff
+        rod = (a_tri, lay.tri, lay.tri_u0, lay.tri_t0)
     if stiff is not None:
         alpha = alpha / stiff
     w_inv = 1.0 / (1.0 + mods.mass.clamp_min(-0.9)) if mods.mass is not None else x.new_ones(())  # per unit mass
@@ -343,7 +423,7 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
         hard = heldf is not None and omega is None  # the hard grip holds the held nodes at target
         if p.solver == "newton":
             q = _newton_project(lay, q, alpha, w_inv, (heldf[:, 0] / a_grip, target) if hard else None,
-                                p.newton_iterations)
+                                p.newton_iterations, rod)
         else:
             for _ in range(p.iterations):
                 d = q[lay.sj] - q[lay.si]
@@ -398,7 +478,8 @@ def _lifted_fraction(lay: PhysicsLayout, x: torch.Tensor, nrm: torch.Tensor, off
 
 
 def _newton_project(lay: PhysicsLayout, q: torch.Tensor, alpha: torch.Tensor, w_inv: torch.Tensor,
-                    hold: Optional[tuple[torch.Tensor, torch.Tensor]], iterations: int) -> torch.Tensor:
+                    hold: Optional[tuple[torch.Tensor, torch.Tensor]], iterations: int,
+                    rod: Optional[tuple] = None) -> torch.Tensor:
     """The constraint projection of a substep solved by Gauss-Newton on the whole node system
     (``solver: newton``), instead of Jacobi passes whose count, not the compliances, sets how stiff
     a long object can be. Minimises, from the inertial prediction q [K, 3],
@@ -406,7 +487,15 @@ def _newton_project(lay: PhysicsLayout, q: torch.Tensor, alpha: torch.Tensor, w_
     (C_e = length - rest length; the same energy the Jacobi passes descend) with ``iterations``
     dense steps (3K x 3K, Cholesky, float64). ``hold``: (k [K] per node, target [K, 3]), the hard grip
     as the stiff penalty the Jacobi passes apply (k = 1 / a_grip on held nodes, 0 elsewhere).
-    Differentiable in q, alpha, w_inv and the hold."""
+    ``rod``: (compliances [B], triples [3, B], rest offsets u0 [B, 3], rest chords t0 [B, 3]) of the
+    rod's bending (``bend_model: rod``): ``sum_b |u_b - R_b u0_b|^2 / (2 a_b)``, u_b = q'_i - (q'_a + q'_b) / 2
+    the offset of node i from the midpoint of its chain neighbours and R_b the smallest rotation
+    taking the rest chord t0_b to the current one (q_b - q_a, taken at the start of each Gauss-Newton
+    step), so the rest shape turns with the rod. For two edges of length l turning by theta from rest,
+    |u - R u0| is about l theta / 2: a quadratic energy in the turning angle, an elastic rod's; for
+    bending stiffness EI and mass per length rho A, a = rho A l^4 / (4 EI) per unit node mass (every
+    node weighs alike here): the learnable coefficient ``bend`` is rho A / (4 EI), in s^2/m^4.
+    Differentiable in q, alpha, w_inv, the hold and the rod's compliances."""
     K = q.shape[0]
     si, sj = lay.si, lay.sj
     f64 = torch.float64
@@ -433,6 +522,27 @@ def _newton_project(lay: PhysicsLayout, q: torch.Tensor, alpha: torch.Tensor, w_
         if hk is not None:
             diag = diag + hk
             g = g + hk[:, None] * (qd - ht)
+        if rod is not None:
+            a_r, tri, u0, t0 = rod
+            kr = (1.0 / a_r).to(f64)  # [B]
+            cw = (-0.5, 1.0, -0.5)
+            with torch.no_grad():  # the rest offset turned with the chord (lagged: constant in this step)
+                ch = qd[tri[2]] - qd[tri[0]]
+                ch = ch / ch.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+                a0 = t0.to(f64)
+                vx = torch.cross(a0, ch, dim=-1)
+                cc = (a0 * ch).sum(-1).clamp_min(-1.0 + 1e-6)
+                ud = u0.to(f64)
+                # Rodrigues: R u = u + v x u + v x (v x u) / (1 + c)
+                vu = torch.cross(vx, ud, dim=-1)
+                target = ud + vu + torch.cross(vx, vu, dim=-1) / (1.0 + cc)[:, None]
+            u = qd[tri[1]] - 0.5 * (qd[tri[0]] + qd[tri[2]])  # [B, 3]
+            gu = kr[:, None] * (u - target)  # dE/du
+            eye = torch.eye(3, dtype=f64, device=qd.device)
+            for r_ in range(3):
+                g = g.index_add(0, tri[r_], cw[r_] * gu)
+                for c_ in range(3):
+                    hb = hb.index_put((tri[r_], tri[c_]), (cw[r_] * cw[c_]) * kr[:, None, None] * eye, accumulate=True)
         hmat = hb.permute(0, 2, 1, 3).reshape(3 * K, 3 * K) + torch.diag(diag.repeat_interleave(3))
         chol, info = torch.linalg.cholesky_ex(hmat)  # no raise, no host sync
         step = torch.cholesky_solve(-g.reshape(-1, 1), chol)
@@ -457,6 +567,10 @@ class PhysicsPrior(Effect):
         spring_radius_factor: float = 3.0
         bend_neighbors: int = 16
         bend_radius_factor: float = 16.0
+        # "pairs": bending by distance constraints to the next bend_neighbors nodes (any shape);
+        # "rod" (line objects, solver newton): nodes along the centre line, an elastic rod's bending
+        # on consecutive triples with compliance bend_compliance x l^4 (_newton_project)
+        bend_model: str = "pairs"
         skin_neighbors: int = 4
         substeps: int = 16
         iterations: int = 10  # Jacobi constraint passes per substep (solver: jacobi)
@@ -498,6 +612,10 @@ class PhysicsPrior(Effect):
             raise ConfigError("effect physics: relaxation in (0, 2), gain and grip_threshold in (0, 1) required")
         if not p.release_d1 > p.release_d0 >= 0.0:
             raise ConfigError(f"effect physics: release_d1 > release_d0 >= 0 required, got {p.release_d0}, {p.release_d1}")
+        if p.bend_model not in ("pairs", "rod"):
+            raise ConfigError(f"effect physics: bend_model must be 'pairs' or 'rod', got {p.bend_model!r}")
+        if p.bend_model == "rod" and p.solver != "newton":
+            raise ConfigError("effect physics: bend_model 'rod' needs solver 'newton'")
         if not 0.0 <= p.grasp_gather <= 1.0:
             raise ConfigError(f"effect physics: grasp_gather must be in [0, 1], got {p.grasp_gather}")
         if not 0.0 <= p.friction < 5.0 or p.contact_offset_max < 0:
