@@ -536,7 +536,8 @@ def _round_rope(n=600, length=0.34, top=0.5, seed=0, arc=0.0):
         centre = torch.stack([r * torch.sin(s / r), r - r * torch.cos(s / r)], dim=-1)
         side = torch.stack([-torch.sin(s / r), torch.cos(s / r)], dim=-1)
     else:
-        centre, side = torch.stack([s, torch.zeros_like(s)], dim=-1), torch.stack([torch.zeros_like(s), torch.ones_like(s)], dim=-1)
+        centre = torch.stack([s, torch.zeros_like(s)], dim=-1)
+        side = torch.stack([torch.zeros_like(s), torch.ones_like(s)], dim=-1)
     xy = centre + 0.005 * torch.cos(a)[:, None] * side
     return torch.cat([xy, (top + 0.005 * torch.sin(a))[:, None]], dim=-1), torch.full((n,), 0.04 / n)
 

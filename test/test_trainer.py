@@ -457,9 +457,9 @@ def test_the_rod_config_identifies_the_rods_bending_on_a_reference_world_rope(li
     spec = next(e for e in cfg.model_config().effects if e.name == "physics")
     params = PhysicsPrior.Params(**spec.params)
     sc = bundle.scene_context()
-    lay = build_layout(bundle.splats.means.detach().double(), bundle.splats.mass.detach().double(),
-                       torch.as_tensor(sc.plane_normal).double().reshape(3), torch.tensor(float(sc.plane_offset)).double(),
-                       params)
+    normal = torch.as_tensor(sc.plane_normal).double().reshape(3)
+    lay = build_layout(bundle.splats.means.detach().double(), bundle.splats.mass.detach().double(), normal,
+                       torch.tensor(float(sc.plane_offset)).double(), params)
     edges = (lay.rest[1:] - lay.rest[:-1]).norm(dim=-1)
     assert lay.tri is not None and lay.num_nodes >= 24 and float(edges.max()) < 3.0 * float(edges.median())
 
