@@ -248,8 +248,6 @@ def build_layout(rest_splats: torch.Tensor, masses: torch.Tensor, plane_normal: 
         node_mass = node_mass[keep]
         K = int(keep.sum())
     rest = torch.zeros(K, 3, dtype=dt_, device=dev).index_add_(0, node_of, m[:, None] * x) / node_mass[:, None]
-    d = torch.cdist(rest, rest)
-    d.fill_diagonal_(math.inf)
     if p.bend_model == "rod":  # a chain: stretch along consecutive nodes, bending on consecutive triples
         if K < 3:
             raise ValueError(f"physics prior (bend_model rod): need at least 3 nodes along the centre line, got {K}")
@@ -264,6 +262,8 @@ def build_layout(rest_splats: torch.Tensor, masses: torch.Tensor, plane_normal: 
         tri_t0 = tri_t0 / tri_t0.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         tri_len = 0.5 * ((rest[j] - rest[j - 1]).norm(dim=-1) + (rest[j + 1] - rest[j]).norm(dim=-1)).clamp_min(1e-6)
     else:
+        d = torch.cdist(rest, rest)
+        d.fill_diagonal_(math.inf)
         spacing = max(float(d.min(dim=1).values.median()), 1e-6) if K > 1 else 1e-3
         dc = d.cpu()
         stretch = neighbour_pairs(dc, p.neighbors, p.spring_radius_factor * spacing)
@@ -368,12 +368,11 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
     h2 = h * h
     stiff = torch.exp(mods.stiffness) if mods.stiffness is not None else None
     alpha = torch.where(lay.bend, coef["bend"], coef["stretch"]) / (h2 * lay.rest_len)  # [E]
-    rod = None
+    a_tri = None
     if lay.tri is not None:  # the rod's bending: compliance per unit node mass, coef x l^4 (see _newton_project)
         a_tri = coef["bend"] * lay.tri_len.to(x.dtype) ** 4 / h2  # [B]
         if stiff is not None:
             a_tri = a_tri / stiff
-        rod = (a_tri, lay.tri, lay.tri_u0, lay.tri_t0)
     if stiff is not None:
         alpha = alpha / stiff
     w_inv = 1.0 / (1.0 + mods.mass.clamp_min(-0.9)) if mods.mass is not None else x.new_ones(())  # per unit mass
@@ -423,7 +422,7 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
         hard = heldf is not None and omega is None  # the hard grip holds the held nodes at target
         if p.solver == "newton":
             q = _newton_project(lay, q, alpha, w_inv, (heldf[:, 0] / a_grip, target) if hard else None,
-                                p.newton_iterations, rod)
+                                p.newton_iterations, a_tri)
         else:
             for _ in range(p.iterations):
                 d = q[lay.sj] - q[lay.si]
@@ -479,7 +478,7 @@ def _lifted_fraction(lay: PhysicsLayout, x: torch.Tensor, nrm: torch.Tensor, off
 
 def _newton_project(lay: PhysicsLayout, q: torch.Tensor, alpha: torch.Tensor, w_inv: torch.Tensor,
                     hold: Optional[tuple[torch.Tensor, torch.Tensor]], iterations: int,
-                    rod: Optional[tuple] = None) -> torch.Tensor:
+                    a_tri: Optional[torch.Tensor] = None) -> torch.Tensor:
     """The constraint projection of a substep solved by Gauss-Newton on the whole node system
     (``solver: newton``), instead of Jacobi passes whose count, not the compliances, sets how stiff
     a long object can be. Minimises, from the inertial prediction q [K, 3],
@@ -487,9 +486,10 @@ def _newton_project(lay: PhysicsLayout, q: torch.Tensor, alpha: torch.Tensor, w_
     (C_e = length - rest length; the same energy the Jacobi passes descend) with ``iterations``
     dense steps (3K x 3K, Cholesky, float64). ``hold``: (k [K] per node, target [K, 3]), the hard grip
     as the stiff penalty the Jacobi passes apply (k = 1 / a_grip on held nodes, 0 elsewhere).
-    ``rod``: (compliances [B], triples [3, B], rest offsets u0 [B, 3], rest chords t0 [B, 3]) of the
-    rod's bending (``bend_model: rod``): ``sum_b |u_b - R_b u0_b|^2 / (2 a_b)``, u_b = q'_i - (q'_a + q'_b) / 2
-    the offset of node i from the midpoint of its chain neighbours and R_b the smallest rotation
+    ``a_tri`` [B]: the compliances of the rod's bending on the layout's triples (``bend_model: rod``;
+    ``lay.tri``, rest offsets ``lay.tri_u0``, rest chords ``lay.tri_t0``):
+    ``sum_b |u_b - R_b u0_b|^2 / (2 a_b)``, u_b = q'_i - (q'_a + q'_b) / 2 the offset of node i from
+    the midpoint of its chain neighbours and R_b the smallest rotation
     taking the rest chord t0_b to the current one (q_b - q_a, taken at the start of each Gauss-Newton
     step), so the rest shape turns with the rod. For two edges of length l turning by theta from rest,
     |u - R u0| is about l theta / 2: a quadratic energy in the turning angle, an elastic rod's; for
@@ -522,9 +522,9 @@ def _newton_project(lay: PhysicsLayout, q: torch.Tensor, alpha: torch.Tensor, w_
         if hk is not None:
             diag = diag + hk
             g = g + hk[:, None] * (qd - ht)
-        if rod is not None:
-            a_r, tri, u0, t0 = rod
-            kr = (1.0 / a_r).to(f64)  # [B]
+        if a_tri is not None:
+            tri, u0, t0 = lay.tri, lay.tri_u0, lay.tri_t0
+            kr = (1.0 / a_tri).to(f64)  # [B]
             cw = (-0.5, 1.0, -0.5)
             with torch.no_grad():  # the rest offset turned with the chord (lagged: constant in this step)
                 ch = qd[tri[2]] - qd[tri[0]]
