@@ -10,6 +10,12 @@ protocol as ``soma discrepancy``'s before / after), and its depth RMSE and Chamf
 unchanged model's. It answers "what would the gap be if the workflow had found this term at this
 value": the best a candidate can do at all, independent of the fit.
 
+``--objective`` also prints each variant's value of the workflow's fit objective: the 3D residual
+(depth back-projected against the simulated splats, ``trainer.discrepancy.residual_per_frame``) summed
+over the scored frames of the fit episodes, and of the held-out ones. It tells a fit that stopped
+short (a variant the objective prefers to the fitted values) from an objective that prefers the
+wrong term.
+
 ``--breakdown`` also prints where each variant's depth error lives (scored pixels by rendered
 opacity: covered, edge, missed; ``trainer.evaluate_metrics.depth_error_shares``);
 ``--heights K`` prints how far each variant lifts the object (its highest splat's rise above frame 0,
@@ -87,6 +93,31 @@ def rollout_heights(ctx, models: dict) -> dict[str, dict[str, list[float]]]:
     return out
 
 
+def fit_objective(ctx, cfg, models: dict) -> dict[str, tuple[float, float]]:
+    """{model: (3D residual sum over the fit episodes' scored frames, the same over the held-out
+    ones)}, the workflow's fit objective (``trainer.discrepancy.residual_per_frame``), for every
+    :class:`~trainer.baselines.SimulatorModel` in ``models`` (others, e.g. the ground truth's
+    motion, are skipped)."""
+    import torch
+
+    from trainer.baselines import SimulatorModel
+    from trainer.discrepancy import HELDOUT, episode_obs, residual_per_frame
+
+    obs = [(ref.split == HELDOUT, episode_obs(ctx, ref, cfg)[0]) for ref in ctx.refs]
+    if not any(h for h, _ in obs) or all(h for h, _ in obs):
+        raise ValueError("the data needs both fit and held-out episodes for --objective")
+    out: dict[str, tuple[float, float]] = {}
+    for name, model in models.items():
+        if not isinstance(model, SimulatorModel):
+            continue
+        sums = [0.0, 0.0]
+        with torch.no_grad():
+            for held, ob in obs:
+                sums[int(held)] += float(residual_per_frame(model.sim, ob, ctx.scene).sum())
+        out[name] = (sums[0], sums[1])
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.discrepancy_terms", description=__doc__.splitlines()[0])
     p.add_argument("--run", required=True, metavar="RUN", help="soma train run folder")
@@ -97,6 +128,8 @@ def main(argv=None) -> int:
     p.add_argument("--breakdown", action="store_true", help="also print where the depth error lives (by rendered opacity)")
     p.add_argument("--heights", type=int, default=0, metavar="K",
                    help="also print every K-th frame's rise (cm) of the object's highest splat, per held-out episode")
+    p.add_argument("--objective", action="store_true",
+                   help="also print the workflow's fit objective (3D residual sum) on the fit and held-out episodes")
     p.add_argument("--ground-truth-motion", action="store_true",
                    help="add the splats moved by the ground truth's motion (evaluation only: reads the ground-truth topic)")
     args = p.parse_args(argv)
@@ -133,6 +166,10 @@ def main(argv=None) -> int:
             print("                    " + "; ".join(
                 f"{c} {100 * v['pixels']:.1f}% of pixels, {100 * v['error']:.1f}% of the squared error, rms {v['rms']:.4f} m"
                 for c, v in shares.items()), flush=True)
+    if args.objective:
+        print("the workflow's fit objective (3D residual summed over the scored frames; lower is better):")
+        for name, (fit_sum, held_sum) in fit_objective(ctx, cfg, models).items():
+            print(f"  {name:>16s}: fit episodes {fit_sum:.4f}, held-out episodes {held_sum:.4f}", flush=True)
     if args.heights > 0:
         heights = rollout_heights(ctx, models)
         print(f"rise of the highest splat above frame 0, cm, every {args.heights} frames:")

@@ -590,7 +590,8 @@ def test_terms_cli_scores_hand_set_terms_on_the_heldout_episodes(clean_run, tmp_
     variants = {"zero": [{"name": "wind", "accel": [0.0, 0.0, 0.0]}],
                 "gale": [{"name": "wind", "accel": [0.0, 40.0, 0.0]}]}
     args = ["--run", str(root / "run"), "--data", str(data), "--config", "fast", "--json", str(out)]
-    assert main(args + ["--variants", json.dumps(variants), "--breakdown", "--ground-truth-motion", "--heights", "5"]) == 0
+    assert main(args + ["--variants", json.dumps(variants), "--breakdown", "--ground-truth-motion", "--heights", "5",
+                        "--objective"]) == 0
     res = json.loads(out.read_text())
     assert set(res) == {"unchanged", "zero", "gale", "ground-truth motion"}
     assert res["zero"] == res["unchanged"]
@@ -601,6 +602,13 @@ def test_terms_cli_scores_hand_set_terms_on_the_heldout_episodes(clean_run, tmp_
     rows = printed.split("rise of the highest splat")[1].splitlines()[1:]
     assert len(rows) == 2 * 4  # 2 held-out episodes x 4 models, every 5th frame
     assert all(ln.split(":")[1].split()[0] == "0" for ln in rows)  # frame 0: no rise
+    # the fit objective (3D residual sums, fit / held-out episodes): not for the ground truth's motion;
+    # a term at zero leaves it exactly, the gale raises it on both
+    obj = {ln.split(":")[0].strip(): [float(x.split()[-1]) for x in ln.split(":")[1].split(",")]
+           for ln in printed.splitlines() if ": fit episodes" in ln}
+    assert set(obj) == {"unchanged", "zero", "gale"}
+    assert obj["zero"] == obj["unchanged"] and all(v > 0 for v in obj["unchanged"])
+    assert obj["gale"][0] > obj["unchanged"][0] and obj["gale"][1] > obj["unchanged"][1]
     assert main(args + ["--variants", "{not json"]) == 2
     assert main(args + ["--variants", '{"a": [{"accel": 1}]}']) == 2
     assert main(args + ["--variants", '{"unchanged": []}']) == 2
