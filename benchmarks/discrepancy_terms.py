@@ -167,8 +167,13 @@ def main(argv=None) -> int:
                 f"{c} {100 * v['pixels']:.1f}% of pixels, {100 * v['error']:.1f}% of the squared error, rms {v['rms']:.4f} m"
                 for c, v in shares.items()), flush=True)
     if args.objective:
+        try:
+            objective = fit_objective(ctx, cfg, models)
+        except ValueError as e:  # data without fit episodes
+            print(f"discrepancy_terms: error: {e}", file=sys.stderr)
+            return 2
         print("the workflow's fit objective (3D residual summed over the scored frames; lower is better):")
-        for name, (fit_sum, held_sum) in fit_objective(ctx, cfg, models).items():
+        for name, (fit_sum, held_sum) in objective.items():
             print(f"  {name:>16s}: fit episodes {fit_sum:.4f}, held-out episodes {held_sum:.4f}", flush=True)
     if args.heights > 0:
         heights = rollout_heights(ctx, models)
