@@ -693,3 +693,38 @@ def test_grid_start_searches_two_acting_elements_jointly_where_one_at_a_time_sto
     assert found == {1: (1.0, 0.0), 2: (0.0, 2.0)}
     with pytest.raises(ValueError, match="grid_joint"):
         load_discrepancy_config("fast", {"grid_joint": 0})
+
+
+def test_grid_refine_finds_a_threshold_below_the_grids_first_step(monkeypatch):
+    """A threshold response: hold = 0 is off (residual 1), any hold > 0 is on and best at 0.125, a
+    quarter-decade (in log2) per doubling away from it, and hold < 0 is worse than off. The coarse
+    grid (multiples 1, 2, 3 of the scale 1) stops at its first step, hold = 1; grid_refine 4 then
+    tries 1/2 ... 1/16 of that move and finds 0.125, where Adam would get no gradient to follow.
+    sag, never moved by the grid, is left at its start."""
+    import math
+
+    import trainer.discrepancy as D
+    from soma_ros.core.config import load_model_config
+    from soma_ros.core.simulator import Simulator
+
+    sim = Simulator(load_model_config("cpu")).eval()
+    sim.add_effect({"name": "gripper_slip", "direct": True})
+    eff = sim.effects["gripper_slip"]
+
+    def residual(model, obs, scene):
+        h, s = float(eff.hold.detach()), float(eff.sag.detach())
+        r = 1.0 if h == 0.0 else (2.0 if h < 0 else 0.1 + 0.05 * abs(math.log2(h / 0.125)))
+        return torch.tensor([r + abs(s)])
+
+    monkeypatch.setattr(D, "residual_per_frame", residual)
+    found = {}
+    for refine in (0, 4):
+        with torch.no_grad():
+            eff.hold.zero_()
+            eff.sag.zero_()
+        cfg = load_discrepancy_config("fast", {"grid_start": [-2, -1, 1, 2, 3], "grid_refine": refine})
+        D._grid_start(sim, "gripper_slip", [object()], None, cfg, log=lambda *a: None)
+        found[refine] = (float(eff.hold.detach()), float(eff.sag.detach()))
+    assert found == {0: (1.0, 0.0), 4: (0.125, 0.0)}, found
+    with pytest.raises(ValueError, match="grid_refine"):
+        load_discrepancy_config("fast", {"grid_refine": -1})

@@ -142,6 +142,9 @@ class DiscrepancyConfig:
     # and start from the best on grid_episodes fit episodes (a response that stays flat until a threshold,
     # e.g. a grip that holds until it slips, gives Adam no gradient to follow from 0); empty = off
     grid_episodes: int = 4
+    grid_refine: int = 0  # after the grid: each element the grid moved from its start also tries the start plus
+    # 1/2, 1/4, ... 1/2^grid_refine of that move (one element at a time): a threshold response (a grip that lets go
+    # above a load) gives Adam no gradient, and its best value may lie below the grid's first multiple; 0 = off
     grid_joint: int = 2  # effects with at most this many acting parameter elements are gridded jointly (every
     # combination; a grip that slips at a load and one that sags act together, and one element at a time
     # stops where either hides the other); larger ones one element at a time (a wind's 3 components)
@@ -175,6 +178,8 @@ class DiscrepancyConfig:
             raise ValueError(f"discrepancy: jobs must be >= 1, got {self.jobs}")
         if self.grid_episodes < 1 or self.grid_joint < 1 or any(not math.isfinite(float(k)) for k in self.grid_start):
             raise ValueError("discrepancy: grid_episodes >= 1, grid_joint >= 1 and finite grid_start multiples required")
+        if not 0 <= self.grid_refine <= 20:
+            raise ValueError(f"discrepancy: grid_refine must be in [0, 20], got {self.grid_refine}")
         return self
 
 
@@ -597,7 +602,9 @@ def _grid_start(model: Simulator, key: str, fit_obs: Sequence[EpisodeObs], scene
     (``cfg.grid_start``: multiples of each parameter's ``Effect.fit_scale`` added to its value, clamped
     to its bounds; the current values always count), scored by the 3D residual sum on
     ``cfg.grid_episodes`` evenly spaced fit episodes. Every combination when the effect has at most
-    ``cfg.grid_joint`` acting elements, else greedy, one element after another."""
+    ``cfg.grid_joint`` acting elements, else greedy, one element after another. Then, with
+    ``cfg.grid_refine`` = k, every element the grid moved also tries its start plus 1/2, 1/4, ... 1/2^k
+    of that move, one element at a time."""
     n = min(len(fit_obs), max(1, cfg.grid_episodes))
     sub = [fit_obs[int(i)] for i in np.round(np.linspace(0, len(fit_obs) - 1, n)).astype(int)]
     score = lambda: float(sum(residual_per_frame(model, o, scene).sum() for o in sub))  # noqa: E731
@@ -633,6 +640,17 @@ def _grid_start(model: Simulator, key: str, fit_obs: Sequence[EpisodeObs], scene
                 r = score()
                 if r < best:
                     best, best_v = r, v
+            flat[i] = best_v
+    if cfg.grid_refine:  # towards the start: a small effect may lie below the grid's first step
+        for flat, i, values in elements:
+            start, best_v = values[0], float(flat[i])
+            if best_v == start:
+                continue
+            for k in range(1, cfg.grid_refine + 1):
+                flat[i] = start + (best_v - start) / 2 ** k
+                r = score()
+                if r < best:
+                    best, best_v = r, float(flat[i])
             flat[i] = best_v
     log(f"    grid start: {', '.join(f'{n_}={p.detach().reshape(-1).tolist()}' for n_, p in named)}")
 
