@@ -90,3 +90,37 @@ def test_effects_yaml_names_every_effect():
 
     data = yaml.safe_load(Path(config_dir() / "world" / "effects.yaml").read_text())
     assert set(data) == set(EFFECTS)
+
+
+def test_wind_onset_starts_the_wind_inside_the_carry(cfg, tmp_path):
+    """A fan switched on mid-task (``effects.wind.onset``, a fraction of the carrying phase): the
+    rope moves exactly as without wind until the onset, then differently; a wind without onset
+    moves it from the first frame, while it still lies on the table; the onset is recorded in the
+    sidecar; an onset outside [0, 1] is a clear error."""
+    import dataclasses
+
+    import numpy as np
+
+    from soma_ros.world.config import WindConfig
+
+    def episode(name, effects, onset):
+        wind = dataclasses.replace(cfg.effects.wind, velocity=[0.0, 8.5, 0.0], onset=onset)
+        c = dataclasses.replace(cfg, effects=dataclasses.replace(cfg.effects, wind=wind))
+        man = generate_dataset(c, "rope", "tiny", tmp_path / name, episodes=1, seed=2, frames=24, progress=False,
+                               effects=effects, task="drag")
+        ep = man["episodes"][0]["name"]
+        meta = json.loads((tmp_path / name / f"{ep}.meta.json").read_text())
+        return read_states(tmp_path / name / ep)[2], meta
+
+    still, _ = episode("none", None, None)
+    always, _ = episode("always", "wind", None)
+    late, meta = episode("late", "wind", 0.5)
+    assert meta["effects"]["wind"]["onset"] == 0.5
+    moved = lambda p: np.abs(p - still).reshape(len(p), -1).max(axis=1)  # noqa: E731  # [F] m
+    first = lambda p: int(np.argmax(moved(p) > 0))  # noqa: E731
+    print(f"first frame off the windless twin: wind from the start {first(always)}, onset 0.5 {first(late)}; "
+          f"last frame {moved(always)[-1] * 1000:.1f} / {moved(late)[-1] * 1000:.1f} mm")
+    assert first(always) == 1
+    assert first(late) > 4 and moved(late)[-1] > 1e-4
+    with pytest.raises(ValueError, match="onset"):
+        WindConfig(onset=1.5)

@@ -368,6 +368,14 @@ class WindConfig:
     velocity: list[float] = field(default_factory=lambda: [0.0, 6.0, 0.0])
     air_density: float = 1.2
     drag_coefficient: float = 1.2
+    #: When the wind starts: None blows from the first step after settling; a number in [0, 1] is a
+    #: fraction of the carrying phase (a fan switched on mid-task: a resting object is not blown
+    #: off the table before the robot takes it).
+    onset: Optional[float] = None
+
+    def __post_init__(self) -> None:
+        if self.onset is not None and not 0.0 <= float(self.onset) <= 1.0:
+            raise ValueError(f"effects.wind.onset must be null or in [0, 1] (a fraction of the carry), got {self.onset}")
 
 
 @dataclass

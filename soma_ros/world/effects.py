@@ -141,9 +141,22 @@ class ActiveEffects:
         return self.cfg.magnitudes(self.names)
 
     # ---------------------------------------------------------------- per-step forces
-    def apply_forces(self, scene: Scene) -> None:
+    def wind_blows(self, step: int, carry: tuple[int, int]) -> bool:
+        """Whether the wind blows at ``step`` (its ``onset``: a fraction of the carrying steps ``carry``)."""
+        if "wind" not in self:
+            return False
+        onset = self.cfg.wind.onset
+        if onset is None:
+            return True
+        c0, c1 = carry
+        return step >= c0 + int(round(float(onset) * (c1 - c0)))
+
+    def apply_forces(self, scene: Scene, step: int, carry: tuple[int, int]) -> None:
         """Set the object's external forces for the next step (call before every mj_step)."""
-        if "wind" not in self and "air_drag" not in self:
+        wind = self.wind_blows(step, carry)
+        if not wind and "air_drag" not in self:
+            if "wind" in self:  # before the onset: nothing applied yet (qfrc_applied stays zero)
+                self.clear_forces(scene)
             return
         if self._aero is None:
             g = scene.geometry
@@ -151,7 +164,7 @@ class ActiveEffects:
         pos = scene.vertex_positions()
         vel = scene.vertex_velocities()
         force = np.zeros_like(vel)
-        if "wind" in self:
+        if wind:
             w = self.cfg.wind
             force += self._aero.forces(pos, vel, np.asarray(w.velocity, float), w.air_density * w.drag_coefficient)
         if "air_drag" in self:

@@ -198,7 +198,7 @@ class EpisodeSim:
                     self._release()
                 self.held = self.effects.maybe_slip(s, step, p.carry, self.held)
                 self._command(step + 1)
-                self.effects.apply_forces(s)
+                self.effects.apply_forces(s, step, p.carry)
                 mujoco.mj_step(m, d)
                 step += 1
             self._drive_arm(step)
