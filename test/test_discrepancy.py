@@ -660,13 +660,11 @@ def test_fits_stay_inside_the_terms_physical_range():
     assert wind.project_() == [] and wind.accel.tolist() == [0.0, 0.0, -400.0]
 
 
-def test_grid_start_searches_two_acting_elements_jointly_where_one_at_a_time_stops_early(monkeypatch):
-    """A residual whose best is reachable only by changing both elements at once from a first step
-    that looks good alone: hold = 1 alone halves it, sag = 2 with hold = 0 takes it to a tenth, and
-    with hold = 1 every sag is worse than 0.5. One element at a time (grid_joint 1) stops at
-    (1, 0); the joint grid (grid_joint 2, the default) finds (0, 2). The residual here is a function
-    of the term's two parameters (the search itself is what is tested; the rollouts it stands for
-    are tested with the workflow)."""
+def _grid_search_on(monkeypatch, residual_of, overrides: dict) -> dict:
+    """{key: (hold, sag)} where ``_grid_start`` leaves gripper_slip's two direct parameters, from
+    (0, 0), for each config override set in ``overrides`` ({key: {option: value}}), with the
+    residual a function ``residual_of(hold, sag)`` of the term's parameters (the search itself is
+    what is tested; the rollouts it stands for are tested with the workflow)."""
     import trainer.discrepancy as D
     from soma_ros.core.config import load_model_config
     from soma_ros.core.simulator import Simulator
@@ -675,21 +673,27 @@ def test_grid_start_searches_two_acting_elements_jointly_where_one_at_a_time_sto
     sim.add_effect({"name": "gripper_slip", "direct": True})
     eff = sim.effects["gripper_slip"]
     assert [n for n, _ in sim.acting_parameters("gripper_slip")] == ["hold", "sag"]
-
-    def residual(model, obs, scene):
-        h, s = float(eff.hold.detach()), float(eff.sag.detach())
-        table = {(0.0, 0.0): 1.0, (1.0, 0.0): 0.5, (0.0, 2.0): 0.1}
-        return torch.tensor([table.get((h, s), 2.0 if h != 0.0 else 1.5)])
-
-    monkeypatch.setattr(D, "residual_per_frame", residual)
+    monkeypatch.setattr(D, "residual_per_frame", lambda model, obs, scene: torch.tensor(
+        [residual_of(float(eff.hold.detach()), float(eff.sag.detach()))]))
     found = {}
-    for joint in (1, 2):
+    for key, extra in overrides.items():
         with torch.no_grad():
             eff.hold.zero_()
             eff.sag.zero_()
-        cfg = load_discrepancy_config("fast", {"grid_start": [-2, -1, 1, 2, 3], "grid_joint": joint})
+        cfg = load_discrepancy_config("fast", {"grid_start": [-2, -1, 1, 2, 3], **extra})
         D._grid_start(sim, "gripper_slip", [object()], None, cfg, log=lambda *a: None)
-        found[joint] = (float(eff.hold.detach()), float(eff.sag.detach()))
+        found[key] = (float(eff.hold.detach()), float(eff.sag.detach()))
+    return found
+
+
+def test_grid_start_searches_two_acting_elements_jointly_where_one_at_a_time_stops_early(monkeypatch):
+    """A residual whose best is reachable only by changing both elements at once from a first step
+    that looks good alone: hold = 1 alone halves it, sag = 2 with hold = 0 takes it to a tenth, and
+    with hold = 1 every sag is worse than 0.5. One element at a time (grid_joint 1) stops at
+    (1, 0); the joint grid (grid_joint 2, the default) finds (0, 2)."""
+    table = {(0.0, 0.0): 1.0, (1.0, 0.0): 0.5, (0.0, 2.0): 0.1}
+    found = _grid_search_on(monkeypatch, lambda h, s: table.get((h, s), 2.0 if h != 0.0 else 1.5),
+                            {1: {"grid_joint": 1}, 2: {"grid_joint": 2}})
     assert found == {1: (1.0, 0.0), 2: (0.0, 2.0)}
     with pytest.raises(ValueError, match="grid_joint"):
         load_discrepancy_config("fast", {"grid_joint": 0})
@@ -703,28 +707,10 @@ def test_grid_refine_finds_a_threshold_below_the_grids_first_step(monkeypatch):
     sag, never moved by the grid, is left at its start."""
     import math
 
-    import trainer.discrepancy as D
-    from soma_ros.core.config import load_model_config
-    from soma_ros.core.simulator import Simulator
+    def residual(h, s):
+        return (1.0 if h == 0.0 else (2.0 if h < 0 else 0.1 + 0.05 * abs(math.log2(h / 0.125)))) + abs(s)
 
-    sim = Simulator(load_model_config("cpu")).eval()
-    sim.add_effect({"name": "gripper_slip", "direct": True})
-    eff = sim.effects["gripper_slip"]
-
-    def residual(model, obs, scene):
-        h, s = float(eff.hold.detach()), float(eff.sag.detach())
-        r = 1.0 if h == 0.0 else (2.0 if h < 0 else 0.1 + 0.05 * abs(math.log2(h / 0.125)))
-        return torch.tensor([r + abs(s)])
-
-    monkeypatch.setattr(D, "residual_per_frame", residual)
-    found = {}
-    for refine in (0, 4):
-        with torch.no_grad():
-            eff.hold.zero_()
-            eff.sag.zero_()
-        cfg = load_discrepancy_config("fast", {"grid_start": [-2, -1, 1, 2, 3], "grid_refine": refine})
-        D._grid_start(sim, "gripper_slip", [object()], None, cfg, log=lambda *a: None)
-        found[refine] = (float(eff.hold.detach()), float(eff.sag.detach()))
+    found = _grid_search_on(monkeypatch, residual, {0: {"grid_refine": 0}, 4: {"grid_refine": 4}})
     assert found == {0: (1.0, 0.0), 4: (0.125, 0.0)}, found
     with pytest.raises(ValueError, match="grid_refine"):
         load_discrepancy_config("fast", {"grid_refine": -1})
