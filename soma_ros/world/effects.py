@@ -155,7 +155,7 @@ class ActiveEffects:
         """Set the object's external forces for the next step (call before every mj_step)."""
         wind = self.wind_blows(step, carry)
         if not wind and "air_drag" not in self:
-            if "wind" in self:  # before the onset: nothing applied yet (qfrc_applied stays zero)
+            if "wind" in self:  # before the wind's onset: no force on the object
                 self.clear_forces(scene)
             return
         if self._aero is None:
