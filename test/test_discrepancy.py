@@ -712,5 +712,11 @@ def test_grid_refine_finds_a_threshold_below_the_grids_first_step(monkeypatch):
 
     found = _grid_search_on(monkeypatch, residual, {0: {"grid_refine": 0}, 4: {"grid_refine": 4}})
     assert found == {0: (1.0, 0.0), 4: (0.125, 0.0)}, found
+
+    def residual_quarter(h, s):  # the same threshold, best at 1/4 of the grid's step, after a better 1/2
+        return (1.0 if h == 0.0 else (2.0 if h < 0 else 0.1 + 0.05 * abs(math.log2(h / 0.25)))) + abs(s)
+
+    # every fraction is of the grid's own move: 1/4 is tried even though 1/2 improved first
+    assert _grid_search_on(monkeypatch, residual_quarter, {4: {"grid_refine": 4}}) == {4: (0.25, 0.0)}
     with pytest.raises(ValueError, match="grid_refine"):
         load_discrepancy_config("fast", {"grid_refine": -1})

@@ -644,10 +644,11 @@ def _grid_start(model: Simulator, key: str, fit_obs: Sequence[EpisodeObs], scene
     if cfg.grid_refine:  # towards the start: a small effect may lie below the grid's first step
         for flat, i, values in elements:
             start, best_v = values[0], float(flat[i])
-            if best_v == start:
+            move = best_v - start  # the grid's move, fixed: each k tries 1/2^k of it, not of a better fraction
+            if move == 0:
                 continue
             for k in range(1, cfg.grid_refine + 1):
-                flat[i] = start + (best_v - start) / 2 ** k
+                flat[i] = start + move / 2 ** k
                 r = score()
                 if r < best:
                     best, best_v = r, float(flat[i])
