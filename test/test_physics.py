@@ -583,6 +583,44 @@ def test_a_clamped_rod_droops_as_an_euler_bernoulli_cantilever_and_rests_where_i
     assert float((x - lay.rest).abs().max()) < 1e-6
 
 
+def test_a_tilting_grip_turns_the_held_section_about_the_closing_axis_as_a_rotational_spring():
+    """``grip_tilt_compliance`` t: the held section turns about the fingers' closing axis on a spring
+    of stiffness node mass / t, so a stiff rod held near one end tilts by its arm's weight torque
+    over that stiffness (linearly in t while small); without it (t = 0) the section stays level.
+    The rope's splats lie on its centre line: on a rope of jittered cells the rod's bending, whose
+    rest shape turns with the smallest rotation of each chord, resists a turn that twists a chord
+    about itself, which a rod as stiff as this one (c 0.01) feels as much as the hinge."""
+    s = torch.rand(600, generator=torch.Generator().manual_seed(0)) * 0.34
+    pts, m = torch.stack([s, torch.zeros_like(s), torch.full_like(s, 0.5)], dim=-1), torch.full((600,), 0.04 / 600)
+    tilt = {}
+    for t in (0.0, 1e-3, 3e-3):
+        p = _rod_params(bend_compliance=1e-2, damping=20.0, grip_tilt_compliance=t)
+        prior = PhysicsPrior(p)
+        assert ("tilt" in prior.coefficients()) == (t > 0)
+        lay = build_layout(pts, m, UP, torch.tensor(0.0), p)
+        end = lay.rest[lay.rest[:, 0].argmin()]
+        cp = torch.stack([end + torch.tensor([0.01, 0.003, 0.0]), end + torch.tensor([0.01, -0.003, 0.0])])
+        x = _run(lay, p, lay.rest.clone(), 150, cp, True)
+        g = grasp_nodes(lay, lay.rest, cp, p)
+        assert int(g.held.sum()) >= 2
+        axis = closing_axis(cp)
+        # the held section's turn about the closing axis (y): its end nodes' slope, the far one lower
+        held = x[g.held]
+        d = held[-1] - held[0] if float(held[-1, 0]) > float(held[0, 0]) else held[0] - held[-1]
+        tilt[t] = math.atan2(-float(d[2]), float(d[0]))
+        if t > 0:
+            torque = 9.81 * float((lay.node_mass * (lay.rest[:, 0] - cp.mean(dim=0)[0])).sum())
+            theory = torque / (float(lay.node_mass.mean()) / t)  # small angles, a rigid arm
+            assert 0.8 * theory < tilt[t] < 1.25 * theory, (t, tilt[t], theory)
+        assert abs(float(axis[1])) > 0.999
+    assert abs(tilt[0.0]) < 0.005  # the hard grip: the section stays as it was grasped
+    assert 2.6 < tilt[3e-3] / tilt[1e-3] < 3.2  # linear in the compliance
+    with pytest.raises(ConfigError, match="grip_tilt_compliance"):
+        PhysicsPrior(_params(grip_tilt_compliance=1e-3))  # the Jacobi passes have no hinge
+    with pytest.raises(ConfigError, match="grip_tilt_compliance"):
+        PhysicsPrior(_rod_params(grip_tilt_compliance=-1.0))
+
+
 def test_the_rod_bending_model_needs_the_newton_solver_and_a_known_name():
     with pytest.raises(ConfigError, match="bend_model"):
         PhysicsPrior(_rod_params(bend_model="beam"))

@@ -464,6 +464,36 @@ def test_the_rod_config_identifies_the_rods_bending_on_a_reference_world_rope(li
     assert lay.tri is not None and lay.num_nodes >= 24 and float(edges.max()) < 3.0 * float(edges.median())
 
 
+def test_the_grips_tilt_is_identified_when_the_rod_config_turns_it_on(lift_dataset, tmp_path):
+    """``identify: {coefficient: tilt}`` sets the tilting grip's compliance (physics
+    ``grip_tilt_compliance`` > 0) like the bending's; asked of a prior without it, a clear error."""
+    from soma_ros.core.checkpoint import read_checkpoint
+    from trainer.config import load_train_config
+    from trainer.train import train
+
+    base = load_train_config("tiny_physics_rod")
+    effects = [dict(e) for e in base.model_overrides["effects"]]
+    for e in effects:
+        if e["name"] == "physics":
+            e["grip_tilt_compliance"] = 0.01
+    over = {"scene": {"photometric_iters": 3, "num_splats": 400},
+            "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 1, "stride": 2, "length_start": 2},
+                         "stage2": {"epochs": 0, "window": 3}},
+            "run": {"val_episodes": 1, "val_frame_stride": 6},
+            "identify": {"coefficient": "tilt", "values": [0.002, 0.2], "episodes": 2}}
+    with pytest.raises(ValueError, match="no coefficient 'tilt'"):
+        train(load_train_config("tiny_physics_rod", over), lift_dataset, tmp_path / "off", max_iterations=0,
+              log=lambda *a, **k: None)
+    run = tmp_path / "run"
+    s = train(load_train_config("tiny_physics_rod", {**over, "model_overrides": {**base.model_overrides,
+                                                                                  "effects": effects}}),
+              lift_dataset, run, max_iterations=0, log=lambda *a, **k: None)
+    losses = [r["val_loss"] for r in s["identified"]["rows"]]
+    assert all(math.isfinite(v) for v in losses) and losses[0] != losses[1]  # the tilt changes the rollouts
+    sd = read_checkpoint(run / "checkpoint.pt")["state_dict"]
+    assert float(sd["effects.terms.physics.log_tilt"]) == pytest.approx(math.log(s["identified"]["chosen"]), rel=1e-6)
+
+
 def test_a_non_finite_gradient_skips_the_step_and_keeps_the_weights():
     from trainer.train import clipped_step
 

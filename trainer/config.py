@@ -334,7 +334,7 @@ class RunConfig:
             raise ConfigError(f"{where}.keep: one of {', '.join(KEEP)}; got {self.keep!r}")
 
 
-IDENTIFY_COEFFICIENTS = ("stretch", "bend", "grip", "damping", "friction")
+IDENTIFY_COEFFICIENTS = ("stretch", "bend", "grip", "tilt", "damping", "friction")
 
 
 @dataclass

@@ -605,8 +605,8 @@ def validate(sim: Simulator, store: EpisodeStore, names: Sequence[str], cfg: Tra
             "follow": (follow_sum / follow_n) if follow_n else float("nan"), "frames": int(cnt)}
 
 
-_IDENTIFY_ATTR = {"stretch": "log_stretch", "bend": "log_bend", "grip": "log_grip", "damping": "log_damping",
-                  "friction": "friction"}
+_IDENTIFY_ATTR = {"stretch": "log_stretch", "bend": "log_bend", "grip": "log_grip", "tilt": "log_tilt",
+                  "damping": "log_damping", "friction": "friction"}
 
 
 @torch.no_grad()
@@ -622,7 +622,10 @@ def identify_prior(sim: Simulator, store: EpisodeStore, names: Sequence[str], cf
     terms = [sim.effects[k] for k in sim.effects.keys() if isinstance(sim.effects[k], PhysicsPrior)]
     if len(terms) != 1:
         raise ValueError(f"identify: needs exactly one effect 'physics' in the model, found {len(terms)}")
-    param = getattr(terms[0], _IDENTIFY_ATTR[ic.coefficient])
+    param = getattr(terms[0], _IDENTIFY_ATTR[ic.coefficient], None)
+    if param is None:
+        raise ValueError(f"identify: the physics effect has no coefficient {ic.coefficient!r} "
+                         "(tilt: set grip_tilt_compliance > 0 on it)")
     log = ic.coefficient != "friction"
     rows: list[dict] = []
     for v in ic.values:

@@ -44,9 +44,13 @@ Model (per step t -> t+1, stateless: everything is read from the simulator's sta
   component along the fingers' closing axis (:func:`closing_axis`) times ``grasp_gather`` (1: held
   where it was; 0: on the plane between the pads, as a pinch gathers a cloth)
   until the gripper opens (:class:`Grasp`, carried in ``SimState.aux``); free nodes are pushed out
-  of ``contact_radius`` around every control point. A **compliant grip** (``PhysicsMods.grip`` =
-  g > 0, gripper_slip's ``loosen``) replaces the held nodes' hard constraint by a spring-damper
-  to their place in the fingers that carries the whole object: hanging rigidly in it, the object
+  of ``contact_radius`` around every control point. A **tilting grip** (``grip_tilt_compliance`` >
+  0, Newton solver, the hard grip): the held section may also turn about the closing axis, on a
+  rotational spring, as a rope pinched between two pads turns under a long arm's weight (the
+  reference world's soft grasp constraints tilt its held section about 19 degrees when the rope
+  is held 3 to 5 of 25 vertices from an end; docs/discrepancy.md, sessions 27 and 30).
+  A **compliant grip** (``PhysicsMods.grip`` = g > 0, gripper_slip's ``loosen``) replaces the held
+  nodes' hard constraint by a spring-damper to their place in the fingers that carries the whole object: hanging rigidly in it, the object
   would be a critically damped oscillator of time constant ``tau = GRIP_TAU0 (e^(2 g) - 1)``
   (0.05 s x: g = 0.5 -> 0.086 s, 1 -> 0.32 s, 1.5 -> 0.95 s), its static sag g_0 tau^2 (7 cm,
   1 m, 9 m). Solved implicitly per substep (stable for any tau): a grip from stiff (g -> 0, the
@@ -72,7 +76,8 @@ At rest stays at rest: with no control point within ``reach`` of any node, every
 exactly zero velocity and no modifier force, the force is exactly zero (no constraint solve),
 so the simulator's rest fixed point holds bit for bit (:mod:`.simulator`).
 
-Learnable: log compliances (stretch, bending, grip), log damping, friction, the gain's logit.
+Learnable: log compliances (stretch, bending, grip; the grip's tilt when on), log damping, friction,
+the gain's logit.
 
 Effect modifiers (:class:`PhysicsMods`, collected by :class:`~.effects.EffectSet` from the other
 terms' ``physics_modifier``): ``accel`` [3] (a uniform field, m/s^2), ``pressure`` [3] (the part of
@@ -421,8 +426,15 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
         q = x + h * v
         hard = heldf is not None and omega is None  # the hard grip holds the held nodes at target
         if p.solver == "newton":
+            hinge = None
+            if hard and "tilt" in coef:  # the held section may turn about the closing axis (grip_tilt_compliance)
+                axis = closing_axis(cps.detach())
+                if axis is not None:
+                    centre = cps.mean(dim=0)
+                    hinge = (centre, axis.to(x.dtype), h2 / coef["tilt"],
+                             _held_turn(x.detach(), grasp.held, grasp.offset.detach(), axis.to(x.dtype)))
             q = _newton_project(lay, q, alpha, w_inv, (heldf[:, 0] / a_grip, target) if hard else None,
-                                p.newton_iterations, a_tri)
+                                p.newton_iterations, a_tri, hinge)
         else:
             for _ in range(p.iterations):
                 d = q[lay.sj] - q[lay.si]
@@ -476,9 +488,35 @@ def _lifted_fraction(lay: PhysicsLayout, x: torch.Tensor, nrm: torch.Tensor, off
     return float((lay.node_mass * s).sum() / lay.node_mass.sum())
 
 
+def _turn(o: torch.Tensor, axis: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
+    """Offsets o [K, 3] turned by the angle phi (rad, 0-d) about the unit axis [3] (Rodrigues)."""
+    ax = axis.expand_as(o)
+    return (o * torch.cos(phi) + torch.cross(ax, o, dim=-1) * torch.sin(phi)
+            + ax * (o @ axis)[:, None] * (1.0 - torch.cos(phi)))
+
+
+@torch.no_grad()
+def _held_turn(x: torch.Tensor, held: torch.Tensor, offset: torch.Tensor, axis: torch.Tensor) -> torch.Tensor:
+    """The angle (rad, 0-d) about the unit axis [3] that best turns the held nodes' grasp offsets
+    [K, 3] onto where they are now (x [K, 3]; both centred on the held nodes' means, each taken
+    across the axis): where the hinge's Gauss-Newton steps start (:func:`_newton_project`)."""
+    o, r = offset[held], x[held]
+    o = o - o.mean(dim=0)
+    r = r - r.mean(dim=0)
+    o = o - (o @ axis)[:, None] * axis
+    r = r - (r @ axis)[:, None] * axis
+    sin = (torch.cross(o, r, dim=-1) @ axis).sum()
+    cos = (o * r).sum()
+    if float(sin.abs() + cos.abs()) < 1e-12:
+        return x.new_zeros(())
+    return torch.atan2(sin, cos)
+
+
 def _newton_project(lay: PhysicsLayout, q: torch.Tensor, alpha: torch.Tensor, w_inv: torch.Tensor,
                     hold: Optional[tuple[torch.Tensor, torch.Tensor]], iterations: int,
-                    a_tri: Optional[torch.Tensor] = None) -> torch.Tensor:
+                    a_tri: Optional[torch.Tensor] = None,
+                    hinge: Optional[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]] = None
+                    ) -> torch.Tensor:
     """The constraint projection of a substep solved by Gauss-Newton on the whole node system
     (``solver: newton``), instead of Jacobi passes whose count, not the compliances, sets how stiff
     a long object can be. Minimises, from the inertial prediction q [K, 3],
@@ -495,7 +533,13 @@ def _newton_project(lay: PhysicsLayout, q: torch.Tensor, alpha: torch.Tensor, w_
     |u - R u0| is about l theta / 2: a quadratic energy in the turning angle, an elastic rod's; for
     bending stiffness EI and mass per length rho A, a = rho A l^4 / (4 EI) per unit node mass (every
     node weighs alike here): the learnable coefficient ``bend`` is rho A / (4 EI), in s^2/m^4.
-    Differentiable in q, alpha, w_inv, the hold and the rod's compliances."""
+    ``hinge`` (centre [3], unit axis [3], k_phi, phi0; with ``hold``; ``grip_tilt_compliance`` > 0):
+    the held section may turn in the fingers. The hold's targets become centre + R(phi) (target -
+    centre), R(phi) the turn by phi about the axis through the centre, phi one more unknown of the
+    solve (starting at phi0, the held nodes' present turn, :func:`_held_turn`) with the energy
+    ``k_phi phi^2 / 2``: a rotational spring, turned by the arms' weight. R(phi) is linearised
+    at each step's phi (Gauss-Newton).
+    Differentiable in q, alpha, w_inv, the hold, the hinge's stiffness and the rod's compliances."""
     K = q.shape[0]
     si, sj = lay.si, lay.sj
     f64 = torch.float64
@@ -506,6 +550,12 @@ def _newton_project(lay: PhysicsLayout, q: torch.Tensor, alpha: torch.Tensor, w_
     hk = ht = None
     if hold is not None:
         hk, ht = hold[0].to(f64), hold[1].to(f64)
+    if hinge is not None:
+        if hk is None:
+            raise ValueError("_newton_project: a hinge needs the hold")
+        h_c, h_ax, h_k = hinge[0].to(f64), hinge[1].to(f64), hinge[2].to(f64)
+        h_o = ht - h_c  # [K, 3] the held nodes' offsets from the hinge's centre
+        phi = hinge[3].to(f64)
     for _ in range(iterations):
         d = qd[sj] - qd[si]
         length = d.norm(dim=-1).clamp_min(1e-12)
@@ -519,9 +569,19 @@ def _newton_project(lay: PhysicsLayout, q: torch.Tensor, alpha: torch.Tensor, w_
         ge = (kk * c)[:, None] * n  # dE/dq_j of each constraint (-that for q_i)
         g = m * (qd - q0)
         g = g.index_add(0, sj, ge).index_add(0, si, -ge)
+        h_col = None
         if hk is not None:
             diag = diag + hk
-            g = g + hk[:, None] * (qd - ht)
+            if hinge is None:
+                g = g + hk[:, None] * (qd - ht)
+            else:
+                ro = _turn(h_o, h_ax, phi)  # [K, 3]
+                tan = torch.cross(h_ax.expand_as(ro), ro, dim=-1)  # d(R o)/dphi
+                e = qd - h_c - ro
+                g = g + hk[:, None] * e
+                h_col = -(hk[:, None] * tan).reshape(-1)  # d2E / dq dphi
+                g_phi = -(hk * (e * tan).sum(-1)).sum() + h_k * phi
+                h_pp = (hk * (tan * tan).sum(-1)).sum() + h_k
         if a_tri is not None:
             tri, u0, t0 = lay.tri, lay.tri_u0, lay.tri_t0
             kr = (1.0 / a_tri).to(f64)  # [B]
@@ -544,8 +604,16 @@ def _newton_project(lay: PhysicsLayout, q: torch.Tensor, alpha: torch.Tensor, w_
                 for c_ in range(3):
                     hb = hb.index_put((tri[r_], tri[c_]), (cw[r_] * cw[c_]) * kr[:, None, None] * eye, accumulate=True)
         hmat = hb.permute(0, 2, 1, 3).reshape(3 * K, 3 * K) + torch.diag(diag.repeat_interleave(3))
+        rhs = -g.reshape(-1, 1)
+        if h_col is not None:  # phi: one more row and column
+            hmat = torch.cat([torch.cat([hmat, h_col[:, None]], dim=1),
+                              torch.cat([h_col, h_pp.reshape(1)])[None, :]], dim=0)
+            rhs = torch.cat([rhs, -g_phi.reshape(1, 1)])
         chol, info = torch.linalg.cholesky_ex(hmat)  # no raise, no host sync
-        step = torch.cholesky_solve(-g.reshape(-1, 1), chol)
+        step = torch.cholesky_solve(rhs, chol)
+        if h_col is not None:
+            phi = phi + step[-1, 0]
+            step = step[:-1]
         # the system is positive definite whenever it is finite (m > 0, the blocks PSD): a failed
         # factorisation means non-finite state, handed on as NaN for Simulator.step to report
         # (SimulationDiverged), as the Jacobi passes do, instead of a LinAlgError mid-step
@@ -586,6 +654,10 @@ class PhysicsPrior(Effect):
         stretch_compliance: float = 1e-9  # s^2 per m of rest length (learnable)
         bend_compliance: float = 1e-8
         grip_compliance: float = 1e-7
+        # > 0 (solver newton): the held section may turn in the fingers about their closing axis, on a
+        # spring of this compliance per unit node mass (s^2 rad / m^2; the rotational stiffness is
+        # node mass / this); 0: it stays as it was grasped (learnable when > 0; :func:`_newton_project`)
+        grip_tilt_compliance: float = 0.0
         damping: float = 1.0  # 1/s (learnable)
         friction: float = 1.0  # the table's (learnable)
         gain: float = 0.9  # fraction of the velocity change made per step (learnable, in (0, 1))
@@ -616,6 +688,9 @@ class PhysicsPrior(Effect):
             raise ConfigError(f"effect physics: bend_model must be 'pairs' or 'rod', got {p.bend_model!r}")
         if p.bend_model == "rod" and p.solver != "newton":
             raise ConfigError("effect physics: bend_model 'rod' needs solver 'newton'")
+        if not p.grip_tilt_compliance >= 0.0 or (p.grip_tilt_compliance > 0.0 and p.solver != "newton"):
+            raise ConfigError(f"effect physics: grip_tilt_compliance must be >= 0, and > 0 needs solver 'newton'; "
+                              f"got {p.grip_tilt_compliance} with {p.solver!r}")
         if not 0.0 <= p.grasp_gather <= 1.0:
             raise ConfigError(f"effect physics: grasp_gather must be in [0, 1], got {p.grasp_gather}")
         if not 0.0 <= p.friction < 5.0 or p.contact_offset_max < 0:
@@ -623,6 +698,8 @@ class PhysicsPrior(Effect):
         f = lambda v: nn.Parameter(torch.tensor(math.log(v)))  # noqa: E731
         self.log_stretch, self.log_bend = f(p.stretch_compliance), f(p.bend_compliance)
         self.log_grip = f(p.grip_compliance)
+        if p.grip_tilt_compliance > 0.0:  # only then: checkpoints of models without it load unchanged
+            self.log_tilt = f(p.grip_tilt_compliance)
         self.log_damping = f(p.damping)
         self.friction = nn.Parameter(torch.tensor(float(p.friction)))
         self.gain_logit = nn.Parameter(torch.tensor(math.log(p.gain / (1.0 - p.gain))))
@@ -631,8 +708,11 @@ class PhysicsPrior(Effect):
         return float(self.params.reach)
 
     def coefficients(self) -> dict[str, torch.Tensor]:
-        return {"stretch": self.log_stretch.exp(), "bend": self.log_bend.exp(), "grip": self.log_grip.exp(),
-                "damping": self.log_damping.exp(), "friction": self.friction}
+        out = {"stretch": self.log_stretch.exp(), "bend": self.log_bend.exp(), "grip": self.log_grip.exp(),
+               "damping": self.log_damping.exp(), "friction": self.friction}
+        if hasattr(self, "log_tilt"):
+            out["tilt"] = self.log_tilt.exp()
+        return out
 
     def describe(self) -> dict[str, float]:
         """The physical coefficients as plain numbers (reports)."""
