@@ -50,9 +50,9 @@ Model (per step t -> t+1, stateless: everything is read from the simulator's sta
   reference world's soft grasp constraints tilt its held section about 19 degrees when the rope
   is held 3 to 5 of 25 vertices from an end; docs/discrepancy.md, sessions 27 and 30).
   A **compliant grip** (``PhysicsMods.grip`` = g > 0, gripper_slip's ``loosen``) replaces the held
-  nodes' hard constraint by a spring-damper to their place in the fingers that carries the whole object: hanging rigidly in it, the object
-  would be a critically damped oscillator of time constant ``tau = GRIP_TAU0 (e^(2 g) - 1)``
-  (0.05 s x: g = 0.5 -> 0.086 s, 1 -> 0.32 s, 1.5 -> 0.95 s), its static sag g_0 tau^2 (7 cm,
+  nodes' hard constraint by a spring-damper to their place in the fingers that carries the whole
+  object: hanging rigidly in it, the object would be a critically damped oscillator of time
+  constant ``tau = GRIP_TAU0 (e^(2 g) - 1)`` (0.05 s x: g = 0.5 -> 0.086 s, 1 -> 0.32 s, 1.5 -> 0.95 s), its static sag g_0 tau^2 (7 cm,
   1 m, 9 m). Solved implicitly per substep (stable for any tau): a grip from stiff (g -> 0, the
   hard grip) through a soft one whose load sags out of the fingers as it is carried, to one that
   holds nothing.
@@ -430,9 +430,9 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
             if hard and "tilt" in coef:  # the held section may turn about the closing axis (grip_tilt_compliance)
                 axis = closing_axis(cps.detach())
                 if axis is not None:
-                    centre = cps.mean(dim=0)
-                    hinge = (centre, axis.to(x.dtype), h2 / coef["tilt"],
-                             _held_turn(x.detach(), grasp.held, grasp.offset.detach(), axis.to(x.dtype)))
+                    axis = axis.to(x.dtype)
+                    hinge = (cps.mean(dim=0), axis, h2 / coef["tilt"],
+                             _held_turn(x.detach(), grasp.held, grasp.offset.detach(), axis))
             q = _newton_project(lay, q, alpha, w_inv, (heldf[:, 0] / a_grip, target) if hard else None,
                                 p.newton_iterations, a_tri, hinge)
         else:
