@@ -53,9 +53,9 @@ Model (per step t -> t+1, stateless: everything is read from the simulator's sta
   nodes' hard constraint by a spring-damper to their place in the fingers that carries the whole
   object: hanging rigidly in it, the object would be a critically damped oscillator of time
   constant ``tau = GRIP_TAU0 (e^(2 g) - 1)`` (0.05 s x: g = 0.5 -> 0.086 s, 1 -> 0.32 s,
-  1.5 -> 0.95 s), its static sag g_0 tau^2 (7 cm, 1 m, 9 m). Solved implicitly per substep (stable for any tau): a grip from stiff (g -> 0, the
-  hard grip) through a soft one whose load sags out of the fingers as it is carried, to one that
-  holds nothing.
+  1.5 -> 0.95 s), its static sag g_0 tau^2 (7 cm, 1 m, 9 m). Solved implicitly per substep
+  (stable for any tau): a grip from stiff (g -> 0, the hard grip) through a soft one whose load
+  sags out of the fingers as it is carried, to one that holds nothing.
   g < 0: a tighter grip (the compliance x e^(3 g)).
   A **friction-limited grip** (``PhysicsMods.release`` = r != 0, gripper_slip's ``weaken``): the
   fingers' friction carries at most ``e^(-r)`` of the object's nominal weight (r = 0.5 -> 0.61,
