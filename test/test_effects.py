@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import pytest
@@ -276,6 +277,43 @@ def test_trainable_false_freezes_and_custom_effects_register():
             register_effect("test_spring_to_origin")(type("Other", (Spring,), {}))
     finally:
         EFFECTS.pop("test_spring_to_origin", None)
+
+
+def test_wind_onset_switches_the_field_on_mid_episode():
+    """A wind with onset T: no force and exactly the windless motion before T - rise, the full field
+    from T on, a C1 ramp between; time = steps x dt."""
+    sp = synthetic_rope(400, seed=4)
+    scene = SceneContext.table()
+    torch.manual_seed(0)
+    sim = Simulator(load_model_config("cpu")).eval()
+    gust = sim.add_effect({"name": "wind", "accel": [0.0, 3.0, 0.0], "onset": 0.2, "rise": 0.1})
+    still = copy.deepcopy(sim)
+    with torch.no_grad():
+        still.effects["wind"].accel.zero_()
+    dt = scene.dt
+    with torch.no_grad():
+        s, q = sim.init_state(sp, scene), still.init_state(sp, scene)
+        far = RobotAction(torch.full((30, 3), 3.0), 0.0)
+        for k in range(int(round(0.35 / dt))):
+            t = k * dt
+            ctx = sim.effect_context(s, far)
+            assert ctx.time == pytest.approx(t)
+            g = float(gust.gate(ctx))
+            if t <= 0.1 + 1e-9:
+                assert g == 0.0 and torch.equal(s.means, q.means)  # before the ramp: the windless motion exactly
+            elif t >= 0.2 - 1e-9:
+                assert g == 1.0
+            else:
+                assert 0.0 < g < 1.0
+            f = gust(ctx)
+            assert torch.allclose(f, ctx.masses[:, None] * torch.tensor([0.0, 3.0 * g, 0.0]))
+            s, q = sim.step(s, far), still.step(q, far)
+    assert float((s.means - q.means).norm(dim=-1).max()) > 1e-6  # and then it blows
+    # a negative onset or a rise <= 0 is refused
+    with pytest.raises(ConfigError, match="onset"):
+        build_effect({"name": "wind", "onset": -1.0})
+    with pytest.raises(ConfigError, match="rise"):
+        build_effect({"name": "wind", "rise": 0.0})
 
 
 def test_adding_wind_by_config_changes_force_and_motion():

@@ -636,7 +636,7 @@ class Simulator(nn.Module):
             positions=x, velocities=v, masses=ep.masses[0], attrs=ep.attrs[0], gravity=ep.scene.gravity,
             plane_normal=ep.scene.plane_normal, plane_offset=ep.scene.plane_offset, dt=dt,
             control_points=cp, control_velocities=cpv, gripper=grip, rest_positions=ep.rest[0], cache=ep.cache,
-            state_in=state.aux, state_out={},
+            state_in=state.aux, state_out={}, time=float(state.step) * float(dt),
         )
 
     def forces(self, state: SimState, action: Optional[RobotAction], reference_only: bool = False) -> torch.Tensor:
