@@ -410,6 +410,12 @@ def build_effects(specs: Iterable[Union[EffectSpec, str, dict]], attr_dim: int =
     return EffectSet(specs, attr_dim=attr_dim)
 
 
+def smoothstep(t: torch.Tensor) -> torch.Tensor:
+    """C1 step: 0 for t <= 0, 1 for t >= 1, 3t^2 - 2t^3 in between."""
+    t = t.clamp(0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
 def _param(value, dtype=torch.float32) -> nn.Parameter:
     return nn.Parameter(torch.as_tensor(value, dtype=dtype).clone())
 
@@ -705,8 +711,8 @@ class Wind(Effect):
 
     def gate(self, ctx: EffectContext) -> torch.Tensor:
         """[] in [0, 1]: how much of the field blows at ``ctx.time`` (1 from ``onset`` on)."""
-        u = min(max((float(ctx.time) - float(self.params.onset)) / float(self.params.rise) + 1.0, 0.0), 1.0)
-        return self.accel.new_tensor(u * u * (3.0 - 2.0 * u))
+        u = (float(ctx.time) - float(self.params.onset)) / float(self.params.rise) + 1.0
+        return smoothstep(self.accel.new_tensor(u))
 
     def accel_at(self, ctx: EffectContext) -> torch.Tensor:
         """[3] the field at ``ctx.time``, m/s^2."""

@@ -61,15 +61,9 @@ from dataclasses import dataclass
 import torch
 
 from .config import ConfigError
-from .effects import Effect, EffectContext, _param, register_effect
+from .effects import Effect, EffectContext, _param, register_effect, smoothstep
 
 __all__ = ["TableFriction", "GripperSlip", "MassScale", "StiffnessScale", "smoothstep"]
-
-
-def smoothstep(t: torch.Tensor) -> torch.Tensor:
-    """C1 step: 0 for t <= 0, 1 for t >= 1, 3t^2 - 2t^3 in between."""
-    t = t.clamp(0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
 
 
 @register_effect("table_friction")

@@ -97,7 +97,7 @@ import torch
 from torch import nn
 
 from .config import ConfigError
-from .effects import Effect, EffectContext, register_effect
+from .effects import Effect, EffectContext, register_effect, smoothstep
 from .spring_mass import farthest_point_sampling, neighbour_pairs, skin_weights
 
 __all__ = ["GRIP_TAU0", "grip_time_constant", "PhysicsMods", "PhysicsLayout", "PhysicsPrior", "Grasp", "build_layout",
@@ -483,8 +483,7 @@ def _lifted_fraction(lay: PhysicsLayout, x: torch.Tensor, nrm: torch.Tensor, off
     """The fraction of the object's mass off the table (smoothstep of every node's height above
     its floor between ``release_d0`` and ``release_d1``): the load a grip carries, quasi-static."""
     lift = (x @ nrm + off) - lay.floor  # [K] height above the node's floor
-    s = ((lift - p.release_d0) / (p.release_d1 - p.release_d0)).clamp(0.0, 1.0)
-    s = s * s * (3.0 - 2.0 * s)
+    s = smoothstep((lift - p.release_d0) / (p.release_d1 - p.release_d0))
     return float((lay.node_mass * s).sum() / lay.node_mass.sum())
 
 
