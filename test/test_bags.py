@@ -164,6 +164,49 @@ def test_empty_joint_states_names_it(good_dataset, robot, tmp_path):
     assert "missing topic /joint_states" in one_line_error(lambda: prepare_episode(gone, robot))
 
 
+def test_joint_efforts_are_read_when_every_message_has_them(good_dataset, robot, tmp_path):
+    """The world records efforts (the arm's external torques, the gripper's force): they are read
+    per joint name at the frame stamps and give the wrist force; a bag whose /joint_states carry
+    none (a rig without torque sensing), or only some messages with them, gives None."""
+    from trainer.bags import read_episode
+    from trainer.dataset import prepare_episode
+
+    src = good_dataset / "rope_000"
+    ep = read_episode(src)
+    assert ep.joint_efforts is not None and ep.joint_efforts.shape == ep.joint_positions.shape
+    assert np.all(np.isfinite(ep.joint_efforts)) and np.abs(ep.joint_efforts).max() > 0
+    full = prepare_episode(src, robot)
+    assert full.wrist_force is not None and full.wrist_force.shape == (full.num_frames, 3)
+
+    def reorder(topic, msg):  # another joint order: the names decide, not the positions
+        if topic == "/joint_states":
+            for f in ("name", "position", "velocity", "effort"):
+                setattr(msg, f, getattr(msg, f)[::-1].copy() if f != "name" else list(msg.name)[::-1])
+        return msg
+
+    rev = read_episode(copy_bag(src, tmp_path / "rev", alter=reorder))
+    assert rev.joint_names == ep.joint_names[::-1]
+    np.testing.assert_array_equal(rev.joint_efforts[:, ::-1], ep.joint_efforts)
+
+    def no_effort(topic, msg):
+        if topic == "/joint_states":
+            msg.effort = np.zeros(0)
+        return msg
+
+    none = copy_bag(src, tmp_path / "none", alter=no_effort)
+    assert read_episode(none).joint_efforts is None and prepare_episode(none, robot).wrist_force is None
+    count = [0]
+
+    def some(topic, msg):
+        if topic == "/joint_states":
+            count[0] += 1
+            if count[0] % 2:
+                msg.effort = np.zeros(0)
+        return msg
+
+    assert read_episode(copy_bag(src, tmp_path / "some", alter=some)).joint_efforts is None
+
+
 def test_soma_train_reports_a_broken_bag_in_one_line(good_dataset, tmp_path):
     """The CLI turns the BagError into `soma train: error: ...` on one line, exit code 1."""
 

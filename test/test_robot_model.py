@@ -315,3 +315,66 @@ def test_shipped_configs_load() -> None:
         cfg = load_robot_config(name)
         assert cfg.urdf.is_file() and cfg.control_points.count == 30
         assert math.isclose(sum(x * x for x in cfg.control_points.approach_axis), 1.0)
+
+
+@pytest.mark.parametrize("name", ["panda", "arx5"])
+def test_ee_jacobian_matches_finite_differences(name: str) -> None:
+    """Linear rows = d(ee origin)/dq; angular rows = the rotation's rate, checked by central
+    differences of the FK on random configurations (float64)."""
+    model = RobotModel.from_config(name, dtype=torch.float64)
+    q = model.sample_q(5, generator=torch.Generator().manual_seed(3))
+    J = model.ee_jacobian(q)
+    n = len(model.arm_joint_names)
+    assert J.shape == (5, 6, n)
+    h = 1e-6
+    for j in range(n):
+        dq = torch.zeros_like(q)
+        dq[:, j] = h
+        Tp, Tm = model.ee_pose(q + dq), model.ee_pose(q - dq)
+        dp = (Tp[:, :3, 3] - Tm[:, :3, 3]) / (2 * h)
+        W = (Tp[:, :3, :3] - Tm[:, :3, :3]) / (2 * h) @ model.ee_pose(q)[:, :3, :3].transpose(1, 2)
+        w = torch.stack([W[:, 2, 1], W[:, 0, 2], W[:, 1, 0]], dim=1)
+        torch.testing.assert_close(J[:, :3, j], dp, atol=1e-7, rtol=0)
+        torch.testing.assert_close(J[:, 3:, j], w, atol=1e-7, rtol=0)
+
+
+def test_ee_jacobian_matches_mujoco(panda: RobotModel) -> None:
+    """The same URDF in MuJoCo (robot alone, base at the origin): mj_jac at the hand's origin."""
+    mujoco = pytest.importorskip("mujoco")
+    from soma_ros.world.config import load_robot_config as load_world_robot
+    from soma_ros.world.robot import load_robot_spec, rname, attach_robot
+
+    rc = load_world_robot("robot_panda")
+    world = mujoco.MjSpec()
+    attach_robot(world, load_robot_spec(rc), np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
+    m = world.compile()
+    d = mujoco.MjData(m)
+    q = panda.sample_q(4, generator=torch.Generator().manual_seed(5))
+    J = panda.ee_jacobian(q).numpy()
+    adr = [m.jnt_dofadr[m.joint(rname(n)).id] for n in panda.arm_joint_names]
+    qadr = [m.jnt_qposadr[m.joint(rname(n)).id] for n in panda.joint_names]
+    body = m.body(rname(panda.ee_link)).id
+    for b in range(q.shape[0]):
+        d.qpos[qadr] = q[b].numpy()
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_comPos(m, d)
+        jp, jr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
+        mujoco.mj_jac(m, d, jp, jr, d.xpos[body], body)
+        np.testing.assert_allclose(J[b, :3], jp[:, adr], atol=1e-9)
+        np.testing.assert_allclose(J[b, 3:], jr[:, adr], atol=1e-9)
+
+
+def test_external_wrench_recovers_a_wrench_and_refuses_bad_input(panda: RobotModel) -> None:
+    q = panda.sample_q(6, generator=torch.Generator().manual_seed(7))
+    names = panda.joint_names + ["panda_finger_joint2"]  # an extra joint is ignored
+    pos = torch.cat([q, q[:, -1:]], dim=1)
+    w = torch.tensor([[0.3, -0.2, -3.5, 0.05, -0.1, 0.02]], dtype=torch.float64).expand(6, 6)
+    tau = (panda.ee_jacobian(q).transpose(1, 2) @ w.unsqueeze(-1)).squeeze(-1)  # [6, 7]
+    eff = torch.cat([tau, torch.full((6, len(names) - 7), 12.0, dtype=torch.float64)], dim=1)  # gripper: its force
+    torch.testing.assert_close(panda.external_wrench(names, pos, eff), w, atol=1e-9, rtol=0)
+    with pytest.raises(ValueError, match="panda_joint3"):
+        panda.external_wrench([n for n in names if n != "panda_joint3"], pos[:, 1:], eff[:, 1:])
+    bad = eff.clone()
+    bad[2, 1] = float("nan")
+    with pytest.raises(ValueError, match="non-finite"):
+        panda.external_wrench(names, pos, bad)

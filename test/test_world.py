@@ -132,7 +132,7 @@ def test_bag_topics_types_and_encodings(worlds, obj):
             assert len(bag[topic]) == n, topic
     js = bag["/joint_states"][0][1]
     assert js.name == [f"panda_joint{i}" for i in range(1, 8)] + ["panda_finger_joint1", "panda_finger_joint2"]
-    assert len(js.position) == len(js.velocity) == 9 and len(js.effort) == 0
+    assert len(js.position) == len(js.velocity) == len(js.effort) == 9  # effort: external torques + gripper force
     for cam in CAMERA_NAMES:
         fid = f"{cam}_color_optical_frame"
         for _, img in bag[f"/{cam}/color/image_raw"][:3]:

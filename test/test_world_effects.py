@@ -124,3 +124,52 @@ def test_wind_onset_starts_the_wind_inside_the_carry(cfg, tmp_path):
     assert first(late) > 4 and moved(late)[-1] > 1e-4
     with pytest.raises(ValueError, match="onset"):
         WindConfig(onset=1.5)
+
+
+def test_efforts_feel_a_heavier_rope_but_not_a_softer_one(cfg, tmp_path):
+    """/joint_states effort carries the arm's external torques: the wrist force estimated from
+    them (trainer.dataset, RobotModel.external_wrench) pulls down on the lifted rope. A 10x heavier
+    rope moves as a 10x softer one does (a welded grasp on a position-controlled arm: only the
+    ratio of weight to stiffness shapes the motion), which a camera cannot tell apart
+    (docs/discrepancy.md, session 34); its pull on the wrist is 10x the softer one's. Effort noise
+    never moves the motion."""
+    import copy
+
+    import numpy as np
+    import torch
+
+    from soma_ros.core.robot import RobotModel
+    from trainer.dataset import prepare_episode
+
+    c = copy.deepcopy(cfg)
+    c.tasks["rope"] = ["lift"]
+    c.motion.lift_height = [0.26, 0.32]
+    c.effects.heavy.mass_scale = 10.0
+    c.effects.stiff.young_scale = 0.1
+    robot = RobotModel.from_config("panda", dtype=torch.float64)
+    load, points = {}, {}
+    for eff in ("none", "heavy", "stiff"):
+        out = tmp_path / eff
+        man = generate_dataset(c, "rope", "tiny", out, episodes=1, seed=0, frames=80, progress=False,
+                               effects=None if eff == "none" else eff)
+        ep = prepare_episode(out / man["episodes"][0]["bag"], robot)
+        assert ep.wrist_force is not None and ep.wrist_force.shape == (80, 3)
+        held = (ep.gripper < 0.5).numpy()
+        held[:60] = False  # the rope is up from here on
+        load[eff] = float(-ep.wrist_force[held, 2].mean())  # N, pulling down
+        _, _, points[eff] = read_states(out / man["episodes"][0]["bag"])
+    print({k: round(v, 3) for k, v in load.items()})
+    gap = np.linalg.norm(points["heavy"] - points["stiff"], axis=-1).mean(axis=1)  # [F] m
+    moved = np.linalg.norm(points["heavy"] - points["none"], axis=-1).mean(axis=1)
+    print(f"heavy vs softer: {1e3 * gap.max():.2f} mm at most (heavy vs none {1e3 * moved.max():.1f} mm)")
+    assert 0.15 < load["none"] < 0.6  # a 40 g rope, partly on the table
+    assert gap.max() < 0.1 * moved.max()  # the same motion ...
+    assert 8.0 < load["heavy"] / load["stiff"] < 12.5  # ... but about 10x the pull (11.0x measured)
+    assert 0.5 < load["stiff"] / load["none"] < 1.2
+    # the effort setting changes what is recorded, not what happens
+    c.robot_config.effort = "none"
+    man = generate_dataset(c, "rope", "tiny", tmp_path / "quiet", episodes=1, seed=0, frames=80, progress=False)
+    _, _, pts = read_states(tmp_path / "quiet" / man["episodes"][0]["bag"])
+    assert np.array_equal(pts, points["none"])
+    ep = prepare_episode(tmp_path / "quiet" / man["episodes"][0]["bag"], robot)
+    assert ep.wrist_force is None

@@ -12,7 +12,8 @@ Topic conventions are those of a real RealSense rig (remappable through
 
 Frames are synchronised on the colour image stamps of the first camera; every
 other stream is matched to the nearest stamp within a tolerance, joint states
-are interpolated linearly by stamp. The evaluation-only ground-truth topic
+are interpolated linearly by stamp (their efforts too, when every message has one
+per joint: :attr:`Episode.joint_efforts`). The evaluation-only ground-truth topic
 ``/world/object_points`` is never deserialised here (see
 :data:`FORBIDDEN_TOPICS`); training code reads bags only through this module.
 
@@ -79,6 +80,8 @@ class Episode:
     joint_positions: np.ndarray  # [T, J] float64, interpolated at stamps_ns
     cameras: dict[str, CameraStream]
     static_tf: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)  # (parent, child) -> [4,4]
+    #: [T, J] float64 (N m / N), interpolated at stamps_ns; None when /joint_states carries no efforts
+    joint_efforts: Optional[np.ndarray] = None
 
     @property
     def num_frames(self) -> int:
@@ -216,24 +219,27 @@ def read_episode(
     names = list(js[0].name)
     if not names:
         raise BagError(f"{bag.name}: {topics.joint_states} has no joint names")
-    js_ns, js_pos = [], []
+    js_ns, js_pos, js_eff = [], [], []
     for m in js:
-        if list(m.name) != names:
-            idx = {n: i for i, n in enumerate(m.name)}
-            if any(n not in idx for n in names):
-                continue
-            pos = np.array([m.position[idx[n]] for n in names], dtype=np.float64)
-        else:
-            pos = np.asarray(m.position, dtype=np.float64)
-        if pos.shape != (len(names),) or not np.all(np.isfinite(pos)):
+        idx = {n: i for i, n in enumerate(m.name)}
+        if any(n not in idx for n in names):
             continue
+        pos = np.array([m.position[idx[n]] for n in names], dtype=np.float64) if len(m.position) == len(m.name) else None
+        if pos is None or not np.all(np.isfinite(pos)):
+            continue
+        # efforts only where the message has one per name (JointState allows an empty array)
+        eff = np.array([m.effort[idx[n]] for n in names], dtype=np.float64) if len(m.effort) == len(m.name) else None
         js_ns.append(_stamp_ns(m.header))
         js_pos.append(pos)
+        js_eff.append(eff)
     if not js_pos:
         raise BagError(f"{bag.name}: {topics.joint_states} has no usable message (all malformed)")
     order = np.argsort(js_ns, kind="stable")
     js_ns = np.asarray(js_ns, dtype=np.int64)[order]
     js_pos = np.stack(js_pos)[order]
+    # efforts: only when every usable message has finite ones (else None: a rig without torque sensing)
+    have_eff = all(e is not None and np.all(np.isfinite(e)) for e in js_eff)
+    js_eff = np.stack([js_eff[i] for i in order]) if have_eff else None
 
     # ---- static transforms
     static_tf: dict[tuple[str, str], np.ndarray] = {}
@@ -256,6 +262,10 @@ def read_episode(
         q = np.repeat(js_pos, len(stamps), axis=0)
     else:
         q = np.stack([np.interp(stamps, js_ns, js_pos[:, j]) for j in range(len(names))], axis=-1)
+    tau = None
+    if js_eff is not None:
+        tau = (np.repeat(js_eff, len(stamps), axis=0) if len(js_ns) == 1 else
+               np.stack([np.interp(stamps, js_ns, js_eff[:, j]) for j in range(len(names))], axis=-1))
     if stamps[0] < js_ns[0] - tol or stamps[-1] > js_ns[-1] + tol:
         raise BagError(f"{bag.name}: {topics.joint_states} does not cover the camera frames")
 
@@ -303,7 +313,8 @@ def read_episode(
             name=cam, frame_id=frame_id or info.header.frame_id, K=K, width=W, height=H, rgb=rgb, depth=depth,
             object_mask=None if om is None else om > 127, robot_mask=None if rm is None else rm > 127,
         )
-    return Episode(path=bag, stamps_ns=stamps, joint_names=names, joint_positions=q, cameras=streams, static_tf=static_tf)
+    return Episode(path=bag, stamps_ns=stamps, joint_names=names, joint_positions=q, cameras=streams, static_tf=static_tf,
+                   joint_efforts=tau)
 
 
 # ------------------------------------------------------------ camera poses

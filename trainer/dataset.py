@@ -46,6 +46,9 @@ control_points       [T, P, 3] float32    robot control points, sim frame
 gripper              [T] float32          gripper state c_t in [0, 1] (1 = open)
 gripper_opening      [T] float32          jaw opening, m
 ee_pose              [T, 4, 4] float64    end-effector pose in the sim frame
+wrist_force          [T, 3] f64 or None   force on the end effector, N, sim frame, from the arm's
+                                          external joint torques (/joint_states effort; None
+                                          when the bag has no efforts or the arm < 6 joints)
 ===================  ===================  ==============================================
 
 Training code reads bags only through :mod:`trainer.bags`, which never reads
@@ -170,6 +173,7 @@ class EpisodeData:
     base_to_sim: Sim3
     mounts: dict[str, tuple[str, np.ndarray]] = field(default_factory=dict)
     world_frame: str = "world"
+    wrist_force: Optional[torch.Tensor] = None
 
     def __post_init__(self) -> None:
         T, C, H, W = self.num_frames, len(self.camera_names), self.height, self.width
@@ -186,6 +190,8 @@ class EpisodeData:
                 raise ValueError(f"EpisodeData {self.name}: {name} must be {list(shape)}, got {list(got)}")
         if self.joint_positions.shape != (T, len(self.joint_names)):
             raise ValueError(f"EpisodeData {self.name}: joint_positions must be [T, J]")
+        if self.wrist_force is not None and tuple(self.wrist_force.shape) != (T, 3):
+            raise ValueError(f"EpisodeData {self.name}: wrist_force must be [T, 3], got {list(self.wrist_force.shape)}")
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -341,6 +347,15 @@ def prepare_episode(
         else:
             base_to_sim = Sim3.from_matrix(world_from_base(ep, robot.base_link, wf))
 
+    # the force on the hand from the arm's external joint torques, rotated into the sim frame
+    wrist_force = None
+    if ep.joint_efforts is not None and len(robot.arm_joint_names) >= 6:
+        try:
+            w = robot.external_wrench(ep.joint_names, ep.joint_positions, ep.joint_efforts).double()
+        except ValueError as exc:
+            raise BagError(f"{bag.name}: {topics.joint_states} efforts: {exc}") from None
+        wrist_force = torch.from_numpy(w[:, :3].numpy() @ base_to_sim.R.T)  # [T, 3] N
+
     cps = robot.control_points(q, opening.to(q.dtype))  # [T, P, 3] base frame
     cps_sim = base_to_sim.apply_points(cps.double())
     ee = base_to_sim.apply_pose(fk[robot.ee_link].double())
@@ -382,5 +397,5 @@ def prepare_episode(
         robot_mask=rm_t, loss_mask=om_t & ~rm_t, joint_names=list(ep.joint_names),
         joint_positions=torch.from_numpy(ep.joint_positions), control_points=cps_sim.float(),
         gripper=grip.float(), gripper_opening=opening.float(), ee_pose=ee, base_to_sim=base_to_sim,
-        mounts=mounts, world_frame=wf,
+        mounts=mounts, world_frame=wf, wrist_force=wrist_force,
     )

@@ -37,7 +37,9 @@ Output (DIR):
 
 Topics in each bag (one header stamp per frame, 30 FPS):
   /joint_states                                  sensor_msgs/JointState (URDF names,
-                                                 position + velocity, effort empty)
+                                                 position + velocity; effort: the arm's
+                                                 external torques (N m) and the gripper's
+                                                 force (N), robot YAML `effort`)
   /<cam>/color/image_raw                         sensor_msgs/Image rgb8
   /<cam>/color/camera_info                       sensor_msgs/CameraInfo plumb_bob
   /<cam>/aligned_depth_to_color/image_raw        sensor_msgs/Image 16UC1 (mm, 0 = none)

@@ -353,6 +353,45 @@ class RobotModel:
         assert T.shape == (q.shape[0], 4, 4)
         return T
 
+    def ee_jacobian(self, q: torch.Tensor) -> torch.Tensor:
+        """Geometric Jacobian [B, 6, n_arm] of ``ee_link`` in the base frame for q [B, n_joints]:
+        rows 0-2 the linear velocity of its origin, rows 3-5 its angular velocity, per unit rate of
+        each arm joint (:attr:`arm_joint_names`); by autograd through the FK, so any URDF works."""
+        q = self._check_q(q).detach()
+        n = len(self.arm_joint_names)
+        with torch.enable_grad():
+            qa = q[:, :n].clone().requires_grad_(True)
+            T = self.ee_pose(torch.cat([qa, q[:, n:]], dim=1))  # [B, 4, 4]
+            p, R = T[:, :3, 3], T[:, :3, :3]
+            outs = [p[:, k] for k in range(3)] + [R[:, i, j] for i in range(3) for j in range(3)]
+            grads = [torch.autograd.grad(o.sum(), qa, retain_graph=True, allow_unused=True)[0] for o in outs]
+        grads = [torch.zeros_like(qa) if g is None else g for g in grads]
+        Jp = torch.stack(grads[:3], dim=1)  # [B, 3, n]
+        dR = torch.stack(grads[3:], dim=1).reshape(q.shape[0], 3, 3, n)  # dR/dq_j [B, 3, 3, n]
+        W = torch.einsum("bikn,bjk->bnij", dR, R.detach())  # dR/dq_j R^T: skew-symmetric [B, n, 3, 3]
+        Jw = torch.stack([W[..., 2, 1], W[..., 0, 2], W[..., 1, 0]], dim=1)  # [B, 3, n]
+        J = torch.cat([Jp, Jw], dim=1)
+        assert J.shape == (q.shape[0], 6, n)
+        return J
+
+    def external_wrench(self, names: Sequence[str], positions: ArrayLike, efforts: ArrayLike) -> torch.Tensor:
+        """[T, 6] the wrench on ``ee_link`` (force N, then moment N m about its origin; base frame)
+        that best explains the arm joints' external torques: least squares of J^T w = tau.
+
+        ``names`` [J], ``positions``/``efforts`` [T, J] as on /joint_states; ``efforts`` must be
+        *external* torques (the arm's own gravity and inertia removed, as a torque-sensing arm's
+        estimate gives them, e.g. Franka's ``tau_ext``). Needs at least 6 arm joints (fewer cannot
+        determine a wrench: ValueError)."""
+        n = len(self.arm_joint_names)
+        if n < 6:
+            raise ValueError(f"robot '{self.urdf.robot_name}': a wrench needs at least 6 arm joints, it has {n}")
+        q = self.q_from_joint_state(names, positions)  # [T, n_joints]
+        tau = self._select(names, efforts, self.arm_joint_names, "arm effort").to(q.dtype)  # [T, n]
+        J = self.ee_jacobian(q)  # [T, 6, n]
+        w = torch.linalg.lstsq(J.transpose(1, 2), tau.unsqueeze(-1)).solution.squeeze(-1)  # [T, 6]
+        assert w.shape == (q.shape[0], 6)
+        return w
+
     # ------------------------------------------------------------------ joint states
     def _select(self, names: Sequence[str], positions: ArrayLike, wanted: Sequence[str], what: str) -> torch.Tensor:
         names = [self.config.joint_aliases.get(n, n) for n in names]

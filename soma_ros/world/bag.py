@@ -6,7 +6,7 @@ bag timestamp):
 ===========================================  ===========================  ==========
 topic                                        type                         encoding
 ===========================================  ===========================  ==========
-/joint_states                                sensor_msgs/JointState       (effort empty)
+/joint_states                                sensor_msgs/JointState       (effort: external torques)
 /<cam>/color/image_raw                       sensor_msgs/Image            rgb8
 /<cam>/color/camera_info                     sensor_msgs/CameraInfo       plumb_bob
 /<cam>/aligned_depth_to_color/image_raw      sensor_msgs/Image            16UC1 (mm)

@@ -16,6 +16,7 @@ typo in a YAML never silently falls back to a default.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional, Union, get_args, get_origin, get_type_hints
@@ -180,6 +181,10 @@ class WristCameraConfig:
     rpy: Optional[list[float]] = None
 
 
+#: What /joint_states effort carries (robot YAML ``effort``; soma_ros.world.simulate).
+EFFORT_MODES = ("external", "none")
+
+
 @dataclass
 class RobotConfig:
     """An arm with a parallel gripper, described by a URDF loaded unchanged."""
@@ -203,6 +208,12 @@ class RobotConfig:
     contact_links: list[str] = field(default_factory=list)
     #: Geom colour of the robot (the URDF's visual materials are not loaded).
     rgba: list[float] = field(default_factory=lambda: [0.92, 0.92, 0.92, 1.0])
+    #: /joint_states effort: "external" (the arm's external joint torques, N m, as a torque-sensing
+    #: arm estimates them after its own gravity model, and the gripper servo's force, N) or "none"
+    #: (empty: a rig without torque sensing). See soma_ros.world.simulate.
+    effort: str = "external"
+    #: Standard deviation of the Gaussian noise on every effort sample (N m for the arm, N for the gripper).
+    effort_noise: float = 0.05
     #: Directory of this robot YAML (filled in by the loader).
     source_dir: str = ""
 
@@ -223,6 +234,10 @@ class RobotConfig:
             )
         if self.gripper.actuated not in self.gripper.joints:
             raise ValueError(f"robot {self.name}: gripper.actuated {self.gripper.actuated} is not in gripper.joints")
+        if self.effort not in EFFORT_MODES:
+            raise ValueError(f"robot {self.name}: effort must be one of {', '.join(EFFORT_MODES)}, got {self.effort!r}")
+        if not (math.isfinite(float(self.effort_noise)) and float(self.effort_noise) >= 0.0):
+            raise ValueError(f"robot {self.name}: effort_noise must be >= 0 (N m / N), got {self.effort_noise}")
         _vec(self.tcp_offset, 3, f"robot {self.name}: tcp_offset")
         _vec(self.approach_axis, 3, f"robot {self.name}: approach_axis")
         _vec(self.closing_axis, 3, f"robot {self.name}: closing_axis")

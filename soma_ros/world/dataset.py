@@ -141,7 +141,9 @@ def generate_episode(
         eff = ActiveEffects(list(effects), cfg.effects)
         young, mass, table_mu = eff.young(obj), eff.mass(obj), eff.table_friction(cfg.table)
         scene = build_scene(cfg, obj, geom, pre.width, pre.height, young, mass, table_mu)
-        sim = EpisodeSim(scene, plan, eff, spf, cfg.physics.max_element_stretch)
+        # the effort noise has its own stream: switching it on or off moves no other draw
+        effort_rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 0xEFF0]))
+        sim = EpisodeSim(scene, plan, eff, spf, cfg.physics.max_element_stretch, effort_rng)
         sim.settle(cfg.physics.settle_seconds)
 
         stamp0 = episode_stamp0_ns(cfg, seed, index)

@@ -7,8 +7,15 @@ an effect on leaves the joint trajectory bit-for-bit the same. The gripper
 is a force-limited position servo, so the fingers stop where the object
 stops them. The recorded joint states are the simulator's ``qpos``/``qvel``
 after each frame's steps (and ``mj_forward``, so link poses, cameras and flex
-vertices are in sync with them); ``effort`` is left empty, as on a rig
-without joint torque sensing.
+vertices are in sync with them). ``effort`` (robot YAML ``effort``) is what a
+torque-sensing arm reports after its own gravity model (Franka's estimated
+external torque): on every arm joint the generalized force that the world puts
+on it through the grasp and the hand's and fingers' contacts (N m; the arm's
+own weight is compensated, ``gravcomp``), and on every gripper joint the
+servo's force (N; a mimic finger reports its leader's), each plus Gaussian
+noise ``effort_noise`` drawn from the episode's own generator (so it never
+moves another draw); ``none`` leaves it empty, as on a rig without torque
+sensing.
 
 The grasp is a set of ``connect`` equalities from the hand link to the
 object vertices nearest the TCP (within ``grasp_radius``), switched on when
@@ -29,13 +36,14 @@ from typing import Iterator
 import mujoco
 import numpy as np
 
+from .config import EFFORT_MODES
 from .effects import ActiveEffects
 from .planner import Plan
 from .robot import gripper_joint_value
 from .scene import Scene
 from .transforms import MJ_FROM_OPTICAL
 
-__all__ = ["FrameState", "EpisodeSim", "element_edges", "max_edge_stretch"]
+__all__ = ["EFFORT_MODES", "FrameState", "EpisodeSim", "element_edges", "max_edge_stretch"]
 
 #: Warnings after which MuJoCo silently resets the state: an episode with one is invalid.
 _FATAL_WARNINGS = (mujoco.mjtWarning.mjWARN_BADQACC, mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL)
@@ -65,7 +73,7 @@ class FrameState:
     """What the recorder needs from one frame.
 
     ``position``/``velocity`` [n_arm + n_grip] in ``joint_names`` order (rad, m),
-    ``effort`` [0], ``object_points`` [N, 3] float32 world, ``wrist_T`` [4, 4]
+    ``effort`` [n_arm + n_grip] (N m, N; module docstring) or [0], ``object_points`` [N, 3] float32 world, ``wrist_T`` [4, 4]
     world <- cam_wrist optical frame (ground truth, for the sidecar).
     """
 
@@ -82,8 +90,10 @@ class EpisodeSim:
     """Runs one episode's physics. Use :meth:`settle` once, then iterate :meth:`frames`."""
 
     def __init__(self, scene: Scene, plan: Plan, effects: ActiveEffects, steps_per_frame: int,
-                 max_element_stretch: float = 3.0) -> None:
+                 max_element_stretch: float = 3.0, effort_rng: np.random.Generator | None = None) -> None:
         self.scene = scene
+        scene.robot.validate()  # effort / effort_noise
+        self._effort_rng = effort_rng if effort_rng is not None else np.random.default_rng(0)
         self.max_element_stretch = float(max_element_stretch)
         geom = scene.geometry
         self._edges = element_edges(geom.elements)
@@ -164,6 +174,19 @@ class EpisodeSim:
         self.held = []
 
     # ------------------------------------------------------------------ loop
+    def _effort(self) -> np.ndarray:
+        """[n_arm + n_grip] the arm's external joint torques (N m) and the gripper servo's force (N),
+        each with the configured noise; [0] with ``effort: none``. Call after ``mj_forward``."""
+        s, d, rc = self.scene, self.scene.data, self.scene.robot
+        if rc.effort == "none":
+            return np.zeros(0)
+        arm = d.qfrc_constraint[s.arm_dadr]  # the grasp's and the contacts' generalized force on each arm joint
+        servo = float(d.qfrc_actuator[s.grip_dadr[rc.gripper.joints.index(rc.gripper.actuated)]])
+        e = np.concatenate([arm, np.full(len(s.grip_dadr), servo)])
+        if rc.effort_noise > 0.0:
+            e = e + self._effort_rng.normal(0.0, rc.effort_noise, e.shape)
+        return e
+
     def _state(self, k: int) -> FrameState:
         s, m, d = self.scene, self.scene.model, self.scene.data
         mujoco.mj_forward(m, d)
@@ -178,7 +201,7 @@ class EpisodeSim:
             time=k * self.spf * m.opt.timestep,
             position=d.qpos[qadr].copy(),
             velocity=d.qvel[dadr].copy(),
-            effort=np.zeros(0),
+            effort=self._effort(),
             object_points=s.vertex_positions().astype(np.float32),
             wrist_T=wrist,
         )
