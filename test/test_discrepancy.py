@@ -113,6 +113,58 @@ def test_decide_names_a_clear_winner_and_refuses_noise():
     assert decide({"a": ex["good"], "b": ex["good"]}, s2, 0.05, 0.1)[0] == "none"
 
 
+def test_the_wrist_load_breaks_a_tie_the_camera_cannot():
+    """Two candidates move the object alike (a heavier and a softer rope: the same 3D residual);
+    only one also explains the wrist load. With the load channel it is named; without, neither
+    is. The load never lifts a candidate over the 3D floor: the gap to close is the motion's."""
+    rng = np.random.default_rng(5)
+    base = [1.0 + 0.1 * rng.random(15) for _ in range(5)]
+    kin = [b * (0.5 + 0.05 * rng.standard_normal(15)) for b in base]  # both explain about half of the motion
+    s = bootstrap_explained(base, {"heavy": kin, "soft": [k.copy() for k in kin]}, 400, seed=1)
+    ex = {k: float(1 - sum(x.sum() for x in kin) / sum(x.sum() for x in base)) for k in ("heavy", "soft")}
+    assert decide(ex, s, 0.05, 0.1)[0] == "none"  # a tie on the camera's evidence
+    lbase = [0.3 + 0.05 * rng.random(15) for _ in range(5)]  # |load error| of the unchanged model, N
+    lheavy = [0.2 * b for b in lbase]
+    lsoft = [b * (1.0 + 0.02 * rng.standard_normal(15)) for b in lbase]
+    ls = bootstrap_explained(lbase, {"heavy": lheavy, "soft": lsoft}, 400, seed=1)
+    lex = {"heavy": 0.8, "soft": float(1 - sum(x.sum() for x in lsoft) / sum(x.sum() for x in lbase))}
+    named, rows, info = decide(ex, s, 0.05, 0.1, lex, ls)
+    assert named == "heavy" and info["wrist_load"] and info["significant"] and info["margin_lower_bound"] > 0.5
+    assert rows[0]["score"] == pytest.approx(ex["heavy"] + 0.8) and rows[1]["name"] == "soft"
+    # a load explained far below -1 counts as -1 in the score
+    named, rows, _ = decide(ex, s, 0.05, 0.1, {"heavy": 0.8, "soft": -7.0},
+                            {"heavy": ls["heavy"], "soft": ls["soft"] - 8.0})
+    assert rows[1]["score"] == pytest.approx(ex["soft"] - 1.0) and rows[1]["load_ci_low"] == -1.0
+    # the load alone names nothing: a term that explains the load but not the motion stays below the floor
+    flat = [b * (1 + 0.02 * rng.standard_normal(15)) for b in base]
+    s3 = bootstrap_explained(base, {"heavy": flat}, 300, seed=2)
+    e3 = {"heavy": float(1 - sum(x.sum() for x in flat) / sum(x.sum() for x in base))}
+    assert decide(e3, s3, 0.05, 0.1, {"heavy": 0.8}, {"heavy": ls["heavy"][:300]})[0] == "none"
+
+
+def test_predicted_load_weighs_the_lifted_part_on_a_closed_gripper():
+    from soma_ros.core.effects import EffectSet
+    from soma_ros.core.simulator import SceneContext
+    from trainer.discrepancy import predicted_load
+
+    class Model:  # what predicted_load reads of a Simulator: its effects
+        effects = EffectSet([])
+
+    scene = SceneContext(G, N, -0.75, 1 / 30)
+    m = torch.full((10,), 0.004)  # 40 g
+    x = torch.zeros(10, 3)
+    x[:, 2] = 0.75 + 0.005  # on the table
+    assert predicted_load(Model, m, x, 0.0, scene) == 0.0
+    x[:4, 2] = 0.75 + 0.10  # 16 g of it 10 cm up
+    assert predicted_load(Model, m, x, 0.0, scene) == pytest.approx(0.016 * 9.81)
+    assert predicted_load(Model, m, x, 1.0, scene) == 0.0  # an open gripper carries nothing
+    Model.effects.add({"name": "mass_scale", "params": {"excess": 2.0}})
+    assert Model.effects.weight_factor() == pytest.approx(3.0)
+    assert predicted_load(Model, m, x, 0.0, scene) == pytest.approx(3 * 0.016 * 9.81)
+    Model.effects.add({"name": "stiffness_scale", "params": {"log_scale": -3.0}})  # softer: no heavier
+    assert predicted_load(Model, m, x, 0.0, scene) == pytest.approx(3 * 0.016 * 9.81)
+
+
 def test_bootstrap_with_alternative_baselines_takes_the_smaller_one():
     rng = np.random.default_rng(4)
     low = [1.0 + 0.1 * rng.random(10) for _ in range(3)]
@@ -375,8 +427,14 @@ def test_workflow_end_to_end_negative_control(clean_run):
     assert 0.0 < disk["episodes_beyond_reference"]["p_value"] <= 1.0
     assert "P(at least" in (out / "report.md").read_text()
     assert all("reference_parameters" in f for f in disk["fits"].values())
-    ex = [r["explained_fraction"] for r in disk["ranking"]]
-    assert ex == sorted(ex, reverse=True)
+    sc = [r["score"] for r in disk["ranking"]]
+    assert sc == sorted(sc, reverse=True)
+    # the reference world records efforts: the wrist load ranks the candidates too
+    assert disk["decision"]["wrist_load"]
+    for r in disk["ranking"]:
+        assert -1.0 <= max(r["load_explained"], -1.0) <= 1.0 and r["load_ci_low"] <= r["load_ci_high"]
+        assert r["score"] == pytest.approx(r["explained_fraction"] + max(r["load_explained"], -1.0))
+    assert "wrist load" in (out / "report.md").read_text()
     for k in ("gap_before", "gap_after"):
         assert disk[k]["rmse"] > 0 and disk[k]["chamfer"] > 0 and disk[k]["points"] > 0
     # negative control: effect-free data -> nothing significant, and then the model is unchanged

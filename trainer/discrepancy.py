@@ -159,6 +159,8 @@ class DiscrepancyConfig:
     seed: int = 0
     jobs: int = 1  # candidates fitted in parallel worker processes (spawned, one torch thread each; CPU models);
     # the results do not depend on it
+    load_channel: bool = True  # where every measured and reference episode has /joint_states efforts: rank the
+    # candidates by the held-out 3D residual's explained fraction plus that of the wrist load (rank_candidates)
 
     def validate(self) -> "DiscrepancyConfig":
         unknown = [c for c in self.candidates if c not in EFFECTS]
@@ -217,6 +219,9 @@ class EpisodeObs:
     init: Splats
     frames: list[int]  # scored frames (>= 1)
     points: list[torch.Tensor]  # per scored frame [M, 3]
+    #: per scored frame [F] the measured vertical wrist load, N (> 0: the object pulls the hand down;
+    #: from the arm's external joint torques, EpisodeData.wrist_force), or None without efforts
+    load: Optional[np.ndarray] = None
 
     @property
     def num_frames(self) -> int:
@@ -234,9 +239,13 @@ def episode_obs(ctx, ref, cfg: DiscrepancyConfig) -> tuple[EpisodeObs, EpisodeDa
     """The workflow's view of one episode of an :class:`~trainer.evaluate.EvalContext` (and the episode)."""
     ep = ctx.store.episode(ref.name)
     frames = list(range(cfg.frame_stride, ep.num_frames, cfg.frame_stride))
+    load = None
+    if ep.wrist_force is not None:
+        g = ctx.scene.gravity.double()
+        load = (ep.wrist_force[frames].double() @ (g / g.norm())).numpy()  # [F] N, along gravity
     ob = EpisodeObs(ref.name, ref.task, ref.split, float(ep.dt), ep.control_points.float().clone(),
                     ep.gripper.float().clone(), ctx.store.initial_splats(ref.name), frames,
-                    [_observed(ep, t, cfg.max_points) for t in frames])
+                    [_observed(ep, t, cfg.max_points) for t in frames], load)
     return ob, ep
 
 
@@ -325,17 +334,49 @@ def _rollout(sim: Simulator, ob: EpisodeObs, scene: SceneContext, keep: Sequence
             yield t, state
 
 
+def predicted_load(sim: Simulator, mass: torch.Tensor, means: torch.Tensor, gripper: float,
+                   scene: SceneContext) -> float:
+    """The vertical load (N) that a simulated state puts on a closed gripper, quasi-statically: the
+    weight of the object's part off the table (each splat's mass [N] times the mass term's band of
+    height above the table, 0 below 2 cm, 1 above 5 cm, at ``means`` [N, 3]) times the model's
+    :meth:`~soma_ros.core.effects.EffectSet.weight_factor`; 0 with the gripper open (``gripper`` c
+    > 0.5). Inertia and the table's share of a rope's tension near it are left out: the same for
+    every candidate, so the comparison of candidates does not hinge on them."""
+    if float(gripper) > 0.5:
+        return 0.0
+    from soma_ros.core.effects import smoothstep
+    from soma_ros.core.effects_library import MassScale
+
+    band = MassScale.Params()
+    n = scene.plane_normal.to(means)
+    h = means @ n + float(scene.plane_offset)
+    lifted = smoothstep((h - band.d0) / (band.d1 - band.d0))
+    g = float(scene.gravity.norm())
+    return g * sim.effects.weight_factor() * float((mass.to(means) * lifted).sum())
+
+
 @torch.no_grad()
-def residual_per_frame(sim: Simulator, ob: EpisodeObs, scene: SceneContext) -> np.ndarray:
-    """[F] 3D residual (m) of each scored frame of an episode; +inf on every frame when the rollout
-    diverges (:class:`SimulationDiverged`: a candidate's value that makes the model unstable is the
-    worst value, never a crash of the whole workflow)."""
+def scores_per_frame(sim: Simulator, ob: EpisodeObs, scene: SceneContext) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """([F] 3D residual (m), [F] |measured - predicted wrist load| (N) or None without efforts) of each
+    scored frame of an episode; +inf on every frame of both when the rollout diverges
+    (:class:`SimulationDiverged`: a candidate's value that makes the model unstable is the worst
+    value, never a crash of the whole workflow)."""
+    res, pred = [], []
+    mass = ob.init.mass
     try:
-        out = [float(point_residual(ob.points[i], st.means)[0])
-               for i, (t, st) in enumerate(_rollout(sim, ob, scene, ob.frames))]
+        for i, (t, st) in enumerate(_rollout(sim, ob, scene, ob.frames)):
+            res.append(float(point_residual(ob.points[i], st.means)[0]))
+            if ob.load is not None:
+                pred.append(predicted_load(sim, mass, st.means, float(ob.gripper[t]), scene))
     except SimulationDiverged:
-        return np.full(len(ob.frames), np.inf)
-    return np.asarray(out)
+        inf = np.full(len(ob.frames), np.inf)
+        return inf, (None if ob.load is None else inf.copy())
+    return np.asarray(res), (None if ob.load is None else np.abs(np.asarray(ob.load) - np.asarray(pred)))
+
+
+def residual_per_frame(sim: Simulator, ob: EpisodeObs, scene: SceneContext) -> np.ndarray:
+    """[F] 3D residual (m) of each scored frame of an episode (:func:`scores_per_frame`)."""
+    return scores_per_frame(sim, dataclasses.replace(ob, load=None), scene)[0]
 
 
 # --------------------------------------------------------------------------- statistics
@@ -486,28 +527,51 @@ def episode_residuals(measured: dict[str, dict], reference: Sequence[tuple]) -> 
                  "p_value": p_value}
 
 
+#: a candidate's wrist-load explained fraction counts at least this much in its score: one that more
+#: than doubles the load error contradicts the force measurement, and how badly does not matter
+LOAD_FLOOR = -1.0
+
+
 def decide(explained: dict[str, float], samples: dict[str, np.ndarray], alpha: float,
-           min_explained: float) -> tuple[str, list[dict], dict]:
-    """(named effect or "none", ranking rows sorted by explained fraction, decision details)."""
+           min_explained: float, load: Optional[dict[str, float]] = None,
+           load_samples: Optional[dict[str, np.ndarray]] = None) -> tuple[str, list[dict], dict]:
+    """(named effect or "none", ranking rows sorted by score, decision details).
+
+    Without ``load``: score = the explained fraction of the held-out 3D residual. With ``load`` /
+    ``load_samples`` (per candidate the explained fraction of the held-out wrist load error and its
+    bootstrap samples, drawn on the same resamples as ``samples``): score = explained + max(load,
+    LOAD_FLOOR), the two channels' relative improvements weighted alike. A camera cannot tell a
+    heavier object from a softer one (they move alike); the wrist can. The winner (highest score)
+    is named when the lower bound of its 3D explained fraction exceeds ``min_explained`` (the gap
+    to close is the motion's) and the lower bound of its score's margin over the runner-up's
+    exceeds 0."""
     rows = []
+    score_samples: dict[str, np.ndarray] = {}
     for k, e in explained.items():
         s = samples[k]
-        rows.append({"name": k, "explained_fraction": float(e), "uncertainty": float(np.std(s)),
-                     "ci_low": float(np.quantile(s, alpha)), "ci_high": float(np.quantile(s, 1 - alpha))})
-    rows.sort(key=lambda r: -r["explained_fraction"])
+        row = {"name": k, "explained_fraction": float(e), "uncertainty": float(np.std(s)),
+               "ci_low": float(np.quantile(s, alpha)), "ci_high": float(np.quantile(s, 1 - alpha)), "score": float(e)}
+        score_samples[k] = s
+        if load is not None and load_samples is not None:
+            ls = np.maximum(load_samples[k], LOAD_FLOOR)
+            row.update(load_explained=float(load[k]), load_ci_low=float(np.quantile(ls, alpha)),
+                       load_ci_high=float(np.quantile(ls, 1 - alpha)), score=float(e) + max(float(load[k]), LOAD_FLOOR))
+            score_samples[k] = s + ls
+        rows.append(row)
+    rows.sort(key=lambda r: -r["score"])
     if not rows:  # no candidate could be tested (none acts in this model, or all diverged)
         return "none", [], {"alpha": alpha, "min_explained": min_explained, "winner_candidate": None,
                             "winner_lower_bound": float("nan"),
                             "significant": False}
     best = rows[0]
     info = {"alpha": alpha, "min_explained": min_explained, "winner_candidate": best["name"],
-            "winner_lower_bound": best["ci_low"]}
+            "winner_lower_bound": best["ci_low"], "wrist_load": load is not None and load_samples is not None}
     ok = best["ci_low"] > min_explained
     if len(rows) > 1:
         second = rows[1]
-        diff = samples[best["name"]] - samples[second["name"]]
+        diff = score_samples[best["name"]] - score_samples[second["name"]]
         info["runner_up"] = second["name"]
-        info["margin"] = best["explained_fraction"] - second["explained_fraction"]
+        info["margin"] = best["score"] - second["score"]
         info["margin_lower_bound"] = float(np.quantile(diff, alpha))
         ok = ok and info["margin_lower_bound"] > 0
     info["significant"] = bool(ok)
@@ -699,6 +763,7 @@ class _CandidateWork:
     fit_base: float
     ref_base: float
     den0: float
+    base_load: Optional[list] = None  # per held-out episode [F] |load error| of the unchanged model (N), or None
 
 
 def with_effect(sim: Simulator, name: str, values: dict, cfg: "DiscrepancyConfig") -> Simulator:
@@ -737,7 +802,9 @@ def fit_candidate(w: _CandidateWork, name: str, log: Callable[[str], None]) -> O
         a, r = _line_search(calib, name, zero, ref_obs, ref_scene, cfg.line_search, w.ref_base)
         rec.update(reference_parameters=_values(calib, name), reference_explained=1.0 - r / max(w.ref_base, 1e-12),
                    reference_scale=a)
-        bases = [[residual_per_frame(calib, o, scene) for o in held_obs], list(w.base)]
+        calib_held = [scores_per_frame(calib, o, scene) for o in held_obs]
+        bases = [[r for r, _ in calib_held], list(w.base)]
+        load_bases = [[ld for _, ld in calib_held], list(w.base_load or [])]
         fit_start = float(sum(residual_per_frame(calib, o, scene).sum() for o in fit_obs))
         model, losses, _ = fit_effect(calib, name, fit_obs, scene, cfg, cfg.fit_iters, log, key=name)
         theta0 = [p.detach().clone() for _, p in calib.acting_parameters(name)]
@@ -745,16 +812,21 @@ def fit_candidate(w: _CandidateWork, name: str, log: Callable[[str], None]) -> O
         # may not have finished, and what more steps on *any* data would find is not new
         cont, _, _ = fit_effect(calib, name, ref_obs, ref_scene, cfg, cfg.fit_iters, log, key=name)
         _line_search(cont, name, theta0, ref_obs, ref_scene, cfg.line_search, r)  # as the re-fit's
-        bases.append([residual_per_frame(cont, o, scene) for o in held_obs])
+        cont_held = [scores_per_frame(cont, o, scene) for o in held_obs]
+        bases.append([r for r, _ in cont_held])
+        load_bases.append([ld for _, ld in cont_held])
         rec.update(reference_continued_parameters=_values(cont, name))
     else:
         model, losses, _ = fit_effect(sim, name, fit_obs, scene, cfg, cfg.fit_iters, log)
         bases = [list(w.base)]
+        load_bases = [list(w.base_load or [])]
         fit_start = w.fit_base
         theta0 = [torch.zeros_like(p) for _, p in model.acting_parameters(name)]
     best_a, fit_with = _line_search(model, name, theta0, fit_obs, scene, cfg.line_search, fit_start)
     values = _values(model, name)
-    res = [residual_per_frame(model, o, scene) for o in held_obs]
+    held_scores = [scores_per_frame(model, o, scene) for o in held_obs]
+    res = [r for r, _ in held_scores]
+    load_res = [ld for _, ld in held_scores] if w.base_load is not None else None
     unstable = [o.name for o, r in zip(held_obs, res) if not np.isfinite(r).all()]
     if unstable:  # stable on the fit episodes (line search), not held out: not a physical explanation
         log(f"  candidate {name:15s} diverges with its fitted values {values} on held-out "
@@ -763,6 +835,9 @@ def fit_candidate(w: _CandidateWork, name: str, log: Callable[[str], None]) -> O
     den = max(min(sum(float(x.sum()) for x in alt) for alt in bases), 1e-12)
     num = sum(float(x.sum()) for x in res)
     e = 1.0 - num / den
+    if load_res is not None:
+        lden = max(min(sum(float(x.sum()) for x in alt) for alt in load_bases), 1e-12)
+        rec["load_explained"] = max(1.0 - sum(float(x.sum()) for x in load_res) / lden, LOAD_FLOOR)
     at_bound = [n for n in model.effects[name].project_() if n in values]
     if at_bound:
         log(f"  candidate {name:15s} fitted at the edge of its physical range ({', '.join(at_bound)}): the data "
@@ -772,10 +847,13 @@ def fit_candidate(w: _CandidateWork, name: str, log: Callable[[str], None]) -> O
                kept=best_a > 0, line_search_scale=best_a, seconds=round(time.time() - tc, 1))
     msg = (f"  (calibrated {rec['reference_parameters']}, own-data explained {rec['reference_explained']:+.3f}; "
            f"vs unchanged {rec['explained_vs_unchanged']:+.3f})" if ref_obs else "")
+    if load_res is not None:
+        msg += f"  wrist load explained {rec['load_explained']:+.3f}"
     log(f"  candidate {name:15s} explained {e:+.3f}  fit {rec['fit_explained']:+.3f}"
         f"{f' (x{best_a:g})' if best_a > 0 else ' (no change: not better on its fit episodes)'}  params {values}"
         f"{msg}  ({time.time() - tc:.0f} s)")
-    return {"rec": rec, "res": res, "base": bases}
+    return {"rec": rec, "res": res, "base": bases, "load_res": load_res,
+            "load_base": load_bases if load_res is not None else None}
 
 
 _WORK: Optional[_CandidateWork] = None  # a worker process's copy of the work (set by _init_worker)
@@ -850,10 +928,22 @@ def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Seq
     fit_base = float(sum(r.sum() for r in fit_res))
     ref_base = float(sum(r.sum() for r in ref_res)) if ref_obs else 0.0
     den0 = max(sum(float(x.sum()) for x in base), 1e-12)
+    with_load = bool(cfg.load_channel) and bool(held_obs) and all(o.load is not None for o in held_obs)
+    base_load = [scores_per_frame(sim, o, scene)[1] for o in held_obs] if with_load else None
+    if cfg.load_channel and not with_load:
+        log("  wrist load: not every held-out episode has /joint_states efforts; candidates are ranked on the "
+            "3D residual alone")
+    elif with_load:
+        err = np.concatenate(base_load)
+        meas = np.concatenate([o.load for o in held_obs])
+        log(f"  wrist load: measured {np.mean(meas):.3f} N on average over the held-out scored frames, the unchanged "
+            f"model's error {np.mean(err):.3f} N")
     work = _CandidateWork(sim, list(fit_obs), list(held_obs), list(base), scene, cfg, list(ref_obs), ref_scene,
-                          fit_base, ref_base, den0)
+                          fit_base, ref_base, den0, base_load)
     cand_res: dict[str, list[np.ndarray]] = {}
     cand_base: dict[str, list[list[np.ndarray]]] = {}  # per candidate: its baselines (the smallest sum counts)
+    load_res: dict[str, list[np.ndarray]] = {}
+    load_base: dict[str, list[list[np.ndarray]]] = {}
     fits: dict[str, dict] = {}
     models: dict[str, Simulator] = {}
     for name, out, lines in _map_candidates(work, list(cfg.candidates), log):
@@ -863,10 +953,15 @@ def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Seq
             continue
         fits[name] = out["rec"]
         cand_res[name], cand_base[name] = out["res"], out["base"]
+        if with_load:
+            load_res[name], load_base[name] = out["load_res"], out["load_base"]
         models[name] = with_effect(sim, name, out["rec"]["parameters"], cfg)
     samples = bootstrap_explained(cand_base, cand_res, cfg.bootstrap, cfg.seed) if cand_res else {}
+    # the same seed and frame counts: the same resamples as the 3D residual's (paired channels)
+    lsamples = bootstrap_explained(load_base, load_res, cfg.bootstrap, cfg.seed) if with_load and load_res else None
     named, ranking, decision = decide({k: v["explained_fraction"] for k, v in fits.items()}, samples, cfg.alpha,
-                                      cfg.min_explained)
+                                      cfg.min_explained,
+                                      {k: v["load_explained"] for k, v in fits.items()} if lsamples else None, lsamples)
     decision["calibrated_on_reference"] = bool(ref_obs)
     log(f"  named effect: {named} ({json.dumps(_json_safe(decision))})")
     return named, ranking, decision, fits, models, samples

@@ -156,8 +156,18 @@ def write_report(out: Path, report: dict, stage1: dict, samples: dict, n_cluster
     e = np.asarray([r["explained_fraction"] for r in rk])
     lo = np.asarray([r["ci_low"] for r in rk])
     hi = np.asarray([r["ci_high"] for r in rk])
-    ax.bar(x, e, color=["tab:green" if r["name"] == report["named_effect"] else "tab:gray" for r in rk])
-    ax.errorbar(x, e, yerr=[np.maximum(e - lo, 0), np.maximum(hi - e, 0)], fmt="none", ecolor="k", capsize=4)
+    has_load = bool(rk) and all("load_explained" in r for r in rk)
+    wd = 0.4 if has_load else 0.8
+    ax.bar(x - (wd / 2 if has_load else 0), e, width=wd, label="3D residual" if has_load else None,
+           color=["tab:green" if r["name"] == report["named_effect"] else "tab:gray" for r in rk])
+    ax.errorbar(x - (wd / 2 if has_load else 0), e, yerr=[np.maximum(e - lo, 0), np.maximum(hi - e, 0)], fmt="none",
+                ecolor="k", capsize=4)
+    if has_load:  # the wrist load's explained fraction beside it (clipped at the floor that counts in the score)
+        le = np.asarray([max(r["load_explained"], -1.0) for r in rk])
+        llo, lhi = np.asarray([r["load_ci_low"] for r in rk]), np.asarray([r["load_ci_high"] for r in rk])
+        ax.bar(x + wd / 2, le, width=wd, color="tab:blue", alpha=0.6, label="wrist load")
+        ax.errorbar(x + wd / 2, le, yerr=[np.maximum(le - llo, 0), np.maximum(lhi - le, 0)], fmt="none", ecolor="k",
+                    capsize=4)
     ax.axhline(report["decision"]["min_explained"], color="tab:red", ls="--", lw=1, label="min explained (floor)")
     ax.axhline(0, color="k", lw=0.5)
     ax.set_xticks(x, [r["name"] for r in rk], rotation=20)
@@ -206,18 +216,22 @@ def write_report(out: Path, report: dict, stage1: dict, samples: dict, n_cluster
         "",
         "![worst frame](worst_frame.png)",
         "",
-        "## Candidate ranking (held-out explained fraction of the 3D residual)",
+        "## Candidate ranking (held-out explained fraction of the 3D residual"
+        + (", plus that of the wrist load: the score)" if has_load else ")"),
         "",
-        "| candidate | explained | std (bootstrap) | interval | fitted parameters |",
-        "|---|---|---|---|---|",
+        "| candidate | explained | std (bootstrap) | interval | " + ("wrist load | score | " if has_load else "")
+        + "fitted parameters |",
+        "|---|---|---|---|" + ("---|---|" if has_load else "") + "---|",
     ]
     for r in rk:
         p = report["fits"][r["name"]]["parameters"]
         edge = set(report["fits"][r["name"]].get("at_bound", []))
         ps = ", ".join(f"{k}={np.round(v, 4).tolist()}{' (at its physical bound)' if k in edge else ''}"
                        for k, v in p.items())
+        ld = (f"{r['load_explained']:+.3f} [{r['load_ci_low']:+.3f}, {r['load_ci_high']:+.3f}] | {r['score']:+.3f} | "
+              if has_load else "")
         lines.append(f"| {r['name']} | {r['explained_fraction']:+.3f} | {r['uncertainty']:.3f} | "
-                     f"[{r['ci_low']:+.3f}, {r['ci_high']:+.3f}] | {ps} |")
+                     f"[{r['ci_low']:+.3f}, {r['ci_high']:+.3f}] | {ld}{ps} |")
     lines += ["", "![ranking](ranking.png)", "", "## Gap on held-out measured episodes", "",
               "| metric | before | after | after / before |", "|---|---|---|---|"]
     for m in ("rmse", "chamfer", "points", "abs_rel", "psnr", "ssim"):

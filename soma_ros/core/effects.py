@@ -235,6 +235,12 @@ class Effect(nn.Module):
         or None for a term the robot does not drive."""
         return None
 
+    def weight_factor(self) -> float:
+        """How many times its identified weight the object has with this term (1: unchanged). A
+        force sensor at the wrist feels it; only a term that changes the object's mass says
+        otherwise (:class:`~.effects_library.MassScale`)."""
+        return 1.0
+
     #: parameters that act only through a physics prior, and those that act only as the term's own
     #: force (without one): the discrepancy workflow fits the ones that act in the model at hand
     prior_only: ClassVar[tuple[str, ...]] = ()
@@ -324,6 +330,13 @@ class EffectSet(nn.Module):
     def physics_host(self) -> Optional[str]:
         """Key of the physics prior (an effect with ``hosts_modifiers``), or None."""
         return next((k for k, e in self.terms.items() if e.hosts_modifiers), None)
+
+    def weight_factor(self) -> float:
+        """The product of the terms' :meth:`Effect.weight_factor`: the object's weight over its identified one."""
+        f = 1.0
+        for e in self.terms.values():
+            f *= float(e.weight_factor())
+        return f
 
     def robot_reach(self) -> Optional[float]:
         """The largest reach of the terms the robot drives (``Effect.robot_reach``), or None."""
