@@ -113,10 +113,19 @@ def format_table(rows: list[dict], header: str) -> list[str]:
              "**detected**: the measured episodes' 3D residuals exceed the reference episodes' (the model's own "
              "error) with the workflow's confidence (AUC = P(measured > reference), its lower bound > 0.5), named "
              "or not.", "",
-             "| hidden | named | match | detected (AUC, bound) | top explained (±std) | runner-up | RMSE before → after (floor) | "
+             "| hidden | named | match | detected (AUC, bound) | top explained (±std) [+ wrist load = score] | runner-up | RMSE before → after (floor) | "
              "Chamfer before → after (floor) | raw ratio RMSE / Chamfer | halved (raw) | "
              "excess RMSE before → after | excess Chamfer before → after | excess ratio RMSE / Chamfer | halved (excess) |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    def cand(row, std: bool) -> str:  # "name +explained[±std][ + load = score]" (the load where the workflow had it)
+        if row is None:
+            return ""
+        txt = row["name"] + " " + format(row["explained_fraction"], "+.3f")
+        txt += ("±" + format(row["uncertainty"], ".3f")) if std else ""
+        if "load_explained" in row:
+            txt += f" + load {max(row['load_explained'], -1.0):+.3f} = {row['score']:+.3f}"
+        return txt
+
     for r in rows:
         rk = r.get("ranking") or []
         top, second = (rk[0] if rk else None), (rk[1] if len(rk) > 1 else None)
@@ -126,8 +135,7 @@ def format_table(rows: list[dict], header: str) -> list[str]:
                 f"{'yes' if det['detected'] else 'no'} ({det['auc']:.2f}, {det['auc_low']:.2f})")
         lines.append(
             f"| {','.join(r['hidden'])} | {r['named']} | {'yes' if r['match'] else 'NO'} | {dtxt} | "
-            f"{'' if top is None else top['name'] + ' ' + format(top['explained_fraction'], '+.3f') + '±' + format(top['uncertainty'], '.3f')} | "
-            f"{'' if second is None else second['name'] + ' ' + format(second['explained_fraction'], '+.3f')} | "
+            f"{cand(top, True)} | {cand(second, False)} | "
             f"{f(gb.get('rmse'))} → {f(ga.get('rmse'))} ({f(r.get('floor_rmse'))}) | "
             f"{f(gb.get('chamfer'))} → {f(ga.get('chamfer'))} ({f(r.get('floor_chamfer'))}) | "
             f"{g(r.get('ratio_rmse'))} / {g(r.get('ratio_chamfer'))} | {yn(r.get('halved_raw'))} | "

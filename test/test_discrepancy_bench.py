@@ -68,6 +68,13 @@ def test_negative_control_runs_first_and_table_names_both_definitions():
     assert body[0].rstrip().endswith("| n/a |")  # the control has no excess to halve
     assert "0.25 / 0.25 | yes |" in body[1] and "0.70 / 0.50 | no |" in body[1]
     assert "| yes (0.80, 0.62) |" in body[1] and "| none | none | yes | n/a |" in body[0]
+    # with the wrist load the winner is the best score, not the best 3D fraction: both are shown
+    loaded = [{"name": "mass_scale", "explained_fraction": 0.369, "uncertainty": 0.056, "load_explained": 0.293,
+               "score": 0.662},
+              {"name": "stiffness_scale", "explained_fraction": 0.416, "uncertainty": 0.04, "load_explained": -0.003,
+               "score": 0.413}]
+    line = format_table([{**rows[1], "hidden": ["heavy"], "named": "mass_scale", "ranking": loaded}], "# t")[-1]
+    assert "| mass_scale +0.369±0.056 + load +0.293 = +0.662 | stiffness_scale +0.416 + load -0.003 = +0.413 |" in line
 
 
 def test_effects_config_replaces_only_the_magnitudes():
