@@ -899,7 +899,7 @@ def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Seq
                     base: Sequence[np.ndarray], scene: SceneContext, cfg: DiscrepancyConfig,
                     log: Callable[[str], None] = print, ref_obs: Sequence[EpisodeObs] = (),
                     ref_scene: Optional[SceneContext] = None, fit_res: Optional[Sequence[np.ndarray]] = None,
-                    ref_res: Optional[Sequence[np.ndarray]] = None):
+                    ref_res: Optional[Sequence[np.ndarray]] = None, base_load: Optional[Sequence[np.ndarray]] = None):
     """Fit every candidate alone; its explained fraction of the held-out 3D residual; bootstrap;
     decision. Returns (named, ranking, decision, fits, fitted models, bootstrap samples).
 
@@ -918,8 +918,9 @@ def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Seq
     for nothing more (explained ~ 0); an effect of the opposite sign to the model's own error
     (a slipping grip on a model that under-lifts) is still seen.
 
-    ``fit_res`` / ``ref_res``: the unchanged model's per-frame residuals of ``fit_obs`` /
-    ``ref_obs`` when the caller has them already (else they are computed)."""
+    ``fit_res`` / ``ref_res`` / ``base_load``: the unchanged model's per-frame residuals of ``fit_obs`` /
+    ``ref_obs`` and |wrist load error| of ``held_obs`` when the caller has them already (else they are
+    computed)."""
     ref_scene = ref_scene or scene
     if fit_res is None:
         fit_res = [residual_per_frame(sim, o, scene) for o in fit_obs]
@@ -929,7 +930,10 @@ def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Seq
     ref_base = float(sum(r.sum() for r in ref_res)) if ref_obs else 0.0
     den0 = max(sum(float(x.sum()) for x in base), 1e-12)
     with_load = bool(cfg.load_channel) and bool(held_obs) and all(o.load is not None for o in held_obs)
-    base_load = [scores_per_frame(sim, o, scene)[1] for o in held_obs] if with_load else None
+    if not with_load:
+        base_load = None
+    elif base_load is None:
+        base_load = [scores_per_frame(sim, o, scene)[1] for o in held_obs]
     if cfg.load_channel and not with_load:
         log("  wrist load: not every held-out episode has /joint_states efforts; candidates are ranked on the "
             "3D residual alone")
@@ -1038,13 +1042,16 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
         # -- step 1/2: resimulate, locate (per-frame, per-camera depth / image; 3D; per cluster)
         colors, opac = init.colors().float(), init.opacities.float()
         rec = {"frames": frames, "points": [], "depth_rmse": [], "psnr": [], "cluster_residual": [],
-               "task": ref.task, "split": ref.split, "cameras": list(ep.camera_names), "worst": None}
+               "task": ref.task, "split": ref.split, "cameras": list(ep.camera_names), "worst": None, "load": []}
         worst = -1.0
         with torch.no_grad():
             for i, (t, st) in enumerate(_rollout(sim, ob, scene, frames)):
                 means = st.means.float()
                 r, idx, vec = point_residual(ob.points[i], means)
                 rec["points"].append(float(r))
+                if ob.load is not None:  # as scores_per_frame: the unchanged model's |load error|
+                    rec["load"].append(abs(float(ob.load[i]) - predicted_load(sim, init.mass, st.means,
+                                                                                float(ob.gripper[t]), scene)))
                 cl = torch.full((n_clusters, 3), float("nan"))
                 if len(idx):
                     c = L1[idx]
@@ -1118,8 +1125,10 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
 
     # ---- step 3: candidate fits and held-out explained fraction
     fit_res = [np.asarray(stage1[o.name]["points"]) for o in fit_obs]
+    held_load = ([np.asarray(stage1[o.name]["load"]) for o in held_obs]
+                 if all(o.load is not None for o in held_obs) else None)
     named, ranking, decision, fits, models, samples = rank_candidates(sim, fit_obs, held_obs, base, scene, cfg, log,
-                                                                      ref_obs, ref_scene, fit_res, ref_res)
+                                                                      ref_obs, ref_scene, fit_res, ref_res, held_load)
 
     # ---- step 4: add, (fine-tune), save, re-evaluate on the held-out episodes
     after = sim
