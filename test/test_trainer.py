@@ -408,23 +408,27 @@ def test_identify_sets_the_physics_priors_coefficient_with_the_lowest_score(lift
     from trainer.config import ConfigError, load_train_config
     from trainer.train import train
 
-    for bad in ({"coefficient": "youngs"}, {"values": [1e-8, -1.0]}, {"episodes": 0}):
+    for bad in ({"coefficient": "youngs"}, {"values": [1e-8, -1.0]}, {"episodes": 0}, {"extend": -1},
+                {"values": [1e-6], "extend": 2}):
         with pytest.raises(ConfigError, match="identify"):
             load_train_config("tiny_physics_newton", {"identify": bad})
     over = {"scene": {"photometric_iters": 3, "num_splats": 400},
             "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 1, "stride": 2, "length_start": 2},
                          "stage2": {"epochs": 0, "window": 3}},
             "run": {"val_episodes": 1, "val_frame_stride": 6},
-            "identify": {"coefficient": "bend", "values": [1e-8, 1e-2], "episodes": 2}}
+            "identify": {"coefficient": "bend", "values": [1e-7, 1e-5], "episodes": 2, "extend": 1}}
     run = tmp_path / "run"
     logs: list = []
     s = train(load_train_config("tiny_physics_newton", over), lift_dataset, run, max_iterations=0,
               log=lambda *a, **k: logs.append(a[0]))
     ident = json.loads((run / "identify.json").read_text())
     assert s["identified"] == ident and ident["criterion"] == "val_loss"
-    assert [r["value"] for r in ident["rows"]] == [1e-8, 1e-2]
     losses = [r["val_loss"] for r in ident["rows"]]
     assert losses[0] != losses[1]  # the stiffness changes the rollouts
+    # the better of two values is always on the grid's edge: one more value beyond it (extend 1)
+    edge = 1e-7 if losses[0] < losses[1] else 1e-5
+    assert [r["value"] for r in ident["rows"]] == pytest.approx([1e-7, 1e-5, 1e-9 if edge == 1e-7 else 1e-3])
+    assert [bool(r.get("extended")) for r in ident["rows"]] == [False, False, True]
     assert ident["chosen"] == ident["rows"][losses.index(min(losses))]["value"]
     assert not set(ident["episodes"]) & set(s["val_episodes"]) and len(ident["episodes"]) == 2
     sd = read_checkpoint(run / "checkpoint.pt")["state_dict"]
@@ -434,6 +438,19 @@ def test_identify_sets_the_physics_priors_coefficient_with_the_lowest_score(lift
     with pytest.raises(ValueError, match="exactly one effect 'physics'"):
         train(load_train_config("tiny", {**over, "run": {"val_episodes": 1}}), lift_dataset, tmp_path / "run2",
               max_iterations=0, log=lambda *a, **k: None)
+
+
+def test_identification_continues_a_grid_whose_best_value_is_on_its_edge():
+    """``identify.extend``: the value beyond a grid's end continues that end's spacing (a ratio for
+    compliances and damping, a difference for friction, never below 0); an interior value has none."""
+    from trainer.train import identify_beyond
+
+    assert identify_beyond([1.0, 3.0, 10.0, 30.0, 100.0], 100.0, True) == pytest.approx(100.0 * 100.0 / 30.0)
+    assert identify_beyond([100.0, 1.0, 3.0], 1.0, True) == pytest.approx(1.0 / 3.0)
+    assert identify_beyond([1.0, 3.0, 10.0], 3.0, True) is None
+    assert identify_beyond([5.0], 5.0, True) is None
+    assert identify_beyond([0.5, 1.0, 1.5], 1.5, False) == pytest.approx(2.0)
+    assert identify_beyond([0.2, 0.5], 0.2, False) == 0.0 and identify_beyond([0.0, 0.5], 0.0, False) is None
 
 
 def test_the_rod_config_identifies_the_rods_bending_on_a_reference_world_rope(lift_dataset, tmp_path):

@@ -345,23 +345,33 @@ class IdentifyConfig:
     (evenly spaced; never the validation ones) and scored like a validation (``run.keep``'s
     criterion: validation loss, or point distance for ``best_points``), and training starts from
     the best value. Empty ``values``: off (the config's value stays). Compliances and damping are
-    > 0 (s^2/m, 1/s), friction >= 0."""
+    > 0 (s^2/m, 1/s), friction >= 0.
+
+    ``extend``: a best value on the grid's first or last value is not a minimum, so up to ``extend``
+    more values are scored beyond that end, with the end's spacing (the ratio of its two outermost
+    values; friction: their difference, never below 0), as long as each new one scores lower than
+    the one before (0: the grid only)."""
 
     coefficient: str = "bend"
     values: list = field(default_factory=list)
     episodes: int = 3
+    extend: int = 0
 
     def validate(self, where: str = "identify") -> None:
         if self.coefficient not in IDENTIFY_COEFFICIENTS:
             raise ConfigError(f"{where}.coefficient: one of {', '.join(IDENTIFY_COEFFICIENTS)}; got {self.coefficient!r}")
         if self.episodes < 1:
             raise ConfigError(f"{where}.episodes: must be >= 1, got {self.episodes}")
+        if isinstance(self.extend, bool) or not isinstance(self.extend, int) or self.extend < 0:
+            raise ConfigError(f"{where}.extend: an integer >= 0, got {self.extend!r}")
         try:
             vals = [float(v) for v in self.values]
         except (TypeError, ValueError):
             raise ConfigError(f"{where}.values: a list of numbers, got {self.values!r}") from None
         if any(not math.isfinite(v) or v < 0 or (v == 0 and self.coefficient != "friction") for v in vals):
             raise ConfigError(f"{where}.values: finite, > 0 (friction: >= 0); got {self.values!r}")
+        if self.extend and len(set(vals)) < 2:
+            raise ConfigError(f"{where}.extend: needs at least two different values to continue the grid, got {self.values!r}")
         self.values = vals
 
 
