@@ -718,6 +718,40 @@ def test_fits_stay_inside_the_terms_physical_range():
     assert wind.project_() == [] and wind.accel.tolist() == [0.0, 0.0, -400.0]
 
 
+def test_the_line_search_continues_past_its_smallest_scale_only_when_asked():
+    """``line_search_extend``: a best scale at the end of the list is followed beyond it (that end's
+    ratio) while the residual falls, and stops at the first scale that does not lower it."""
+    from soma_ros.core.config import load_model_config
+    from soma_ros.core.scenes import synthetic_rope
+    from soma_ros.core.simulator import SceneContext, Simulator
+    from trainer.discrepancy import EpisodeObs, _line_search, _rollout
+
+    with pytest.raises(ValueError, match="line_search_extend"):
+        load_discrepancy_config("fast", {"line_search_extend": -1})
+    torch.manual_seed(0)
+    sp = synthetic_rope(300, seed=1, center=(0.0, 0.0, 0.3))
+    scene = SceneContext.table()
+    sim = Simulator(load_model_config("cpu")).eval()
+    sim.init_state(sp, scene)
+    world = __import__("copy").deepcopy(sim)
+    world.add_effect({"name": "mass_scale", "direct": True, "excess": 1.0})
+    T, frames = 5, [2, 4]  # the rope falls freely: the residual is smallest at the world's excess
+    ob = EpisodeObs("e", None, "train", scene.dt, torch.full((T, 4, 3), 3.0), torch.ones(T), sp, frames, [])
+    with torch.no_grad():
+        ob.points = [st.means[::4].clone() for _, st in _rollout(world, ob, scene, frames)]
+    zero = [torch.zeros(())]
+    found = []
+    for extend in (0, 3):
+        model = __import__("copy").deepcopy(sim)
+        model.add_effect({"name": "mass_scale", "direct": True, "excess": 8.0})  # the "fit" overshot 8x
+        a, r = _line_search(model, "mass_scale", [z.reshape(p.shape) for z, (_, p) in
+                                                  zip(zero, model.acting_parameters("mass_scale"))],
+                            [ob], scene, [0.5, 1.0], float("inf"), extend)
+        found.append((a, float(model.effects["mass_scale"].excess.detach())))
+    assert found[0] == (0.5, pytest.approx(4.0))  # the list only
+    assert found[1] == (0.125, pytest.approx(1.0))  # 0.25, 0.125 lower it; 0.0625 does not: stop
+
+
 def _grid_search_on(monkeypatch, residual_of, overrides: dict) -> dict:
     """{key: (hold, sag)} where ``_grid_start`` leaves gripper_slip's two direct parameters, from
     (0, 0), for each config override set in ``overrides`` ({key: {option: value}}), with the

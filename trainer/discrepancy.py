@@ -125,6 +125,8 @@ class DiscrepancyConfig:
     fit_lr_final: float = 0.1  # cosine decay of the step to this fraction over fit_iters
     line_search: list[float] = field(default_factory=lambda: [0.25, 0.5, 1.0, 1.5])  # scales of the fitted
     # parameters tried on the whole fit set (0, the unchanged model, always is)
+    line_search_extend: int = 0  # a best scale that is the list's smallest or largest: up to this many more
+    # beyond it, with that end's ratio, while each lowers the residual (0: the list only; no shipped config sets it)
     passive_friction: Optional[float] = 0.5  # the simulator's passive-object rule in every rollout, as the
     # live node runs it (friction coefficient); None: the checkpoint's setting; < 0: off
     passive_exempt_trained: bool = True  # the terms the model was trained with (its robot coupling) make a
@@ -174,6 +176,9 @@ class DiscrepancyConfig:
             raise ValueError(f"discrepancy: heldout_fraction must be in (0, 1), got {self.heldout_fraction}")
         if any(not (a > 0) for a in self.line_search):
             raise ValueError(f"discrepancy: line_search scales must be > 0, got {self.line_search}")
+        if isinstance(self.line_search_extend, bool) or not isinstance(self.line_search_extend, int) \
+                or self.line_search_extend < 0:
+            raise ValueError(f"discrepancy: line_search_extend must be an integer >= 0, got {self.line_search_extend!r}")
         if not (0 < self.alpha < 0.5) or not (self.fit_lr > 0) or not (0 < self.fit_lr_final <= 1):
             raise ValueError("discrepancy: alpha in (0, 0.5), fit_lr > 0 and fit_lr_final in (0, 1] required")
         if self.jobs < 1:
@@ -721,22 +726,38 @@ def _grid_start(model: Simulator, key: str, fit_obs: Sequence[EpisodeObs], scene
 
 
 def _line_search(model: Simulator, name: str, theta0: list[torch.Tensor], obs: Sequence[EpisodeObs],
-                 scene: SceneContext, scales: Sequence[float], base: float) -> tuple[float, float]:
+                 scene: SceneContext, scales: Sequence[float], base: float, extend: int = 0) -> tuple[float, float]:
     """Set effect ``name``'s parameters to theta0 + a (theta - theta0), theta their fitted values,
     with the scale a in {0} + ``scales`` of the lowest residual sum on ``obs`` (``base``: at
     a = 0). A fit that does not lower it is undone (a = 0); an over- or undershoot of the
-    stochastic fit is corrected. Returns (a, residual sum)."""
+    stochastic fit is corrected. When the best is the smallest or the largest of ``scales``, up to
+    ``extend`` more scales beyond it (that end's ratio) are tried while each lowers the sum.
+    Returns (a, residual sum)."""
     params = [p for _, p in model.acting_parameters(name)]
     theta = [p.detach().clone() for p in params]
-    best_a, best = 0.0, base
-    for a in scales:
+
+    def score(a: float) -> float:
         with torch.no_grad():
             for p, t, t0 in zip(params, theta, theta0):
                 p.copy_(t0 + a * (t - t0))
         model.effects[name].project_()  # an overshoot (a > 1) stays inside the physical range
-        r = float(sum(residual_per_frame(model, o, scene).sum() for o in obs))
+        return float(sum(residual_per_frame(model, o, scene).sum() for o in obs))
+
+    best_a, best = 0.0, base
+    for a in scales:
+        r = score(a)
         if r < best:
             best_a, best = float(a), r
+    ends = sorted({float(a) for a in scales})
+    if extend > 0 and len(ends) >= 2 and best_a in (ends[0], ends[-1]):
+        ratio = ends[0] / ends[1] if best_a == ends[0] else ends[-1] / ends[-2]
+        a = best_a
+        for _ in range(extend):
+            a = a * ratio
+            r = score(a)
+            if not r < best:
+                break
+            best_a, best = a, r
     with torch.no_grad():
         for p, t, t0 in zip(params, theta, theta0):
             p.copy_(t0 + best_a * (t - t0))
@@ -799,7 +820,8 @@ def fit_candidate(w: _CandidateWork, name: str, log: Callable[[str], None]) -> O
     if ref_obs:  # calibration on the model's own conditions
         calib, _, _ = fit_effect(sim, name, ref_obs, ref_scene, cfg, cfg.fit_iters, log)
         zero = [torch.zeros_like(p) for _, p in calib.acting_parameters(name)]
-        a, r = _line_search(calib, name, zero, ref_obs, ref_scene, cfg.line_search, w.ref_base)
+        a, r = _line_search(calib, name, zero, ref_obs, ref_scene, cfg.line_search, w.ref_base,
+                            cfg.line_search_extend)
         rec.update(reference_parameters=_values(calib, name), reference_explained=1.0 - r / max(w.ref_base, 1e-12),
                    reference_scale=a)
         calib_held = [scores_per_frame(calib, o, scene) for o in held_obs]
@@ -811,7 +833,8 @@ def fit_candidate(w: _CandidateWork, name: str, log: Callable[[str], None]) -> O
         # the same budget on the reference: the re-fit continues an optimisation the calibration
         # may not have finished, and what more steps on *any* data would find is not new
         cont, _, _ = fit_effect(calib, name, ref_obs, ref_scene, cfg, cfg.fit_iters, log, key=name)
-        _line_search(cont, name, theta0, ref_obs, ref_scene, cfg.line_search, r)  # as the re-fit's
+        _line_search(cont, name, theta0, ref_obs, ref_scene, cfg.line_search, r,  # as the re-fit's
+                     cfg.line_search_extend)
         cont_held = [scores_per_frame(cont, o, scene) for o in held_obs]
         bases.append([r for r, _ in cont_held])
         load_bases.append([ld for _, ld in cont_held])
@@ -822,7 +845,8 @@ def fit_candidate(w: _CandidateWork, name: str, log: Callable[[str], None]) -> O
         load_bases = [list(w.base_load or [])]
         fit_start = w.fit_base
         theta0 = [torch.zeros_like(p) for _, p in model.acting_parameters(name)]
-    best_a, fit_with = _line_search(model, name, theta0, fit_obs, scene, cfg.line_search, fit_start)
+    best_a, fit_with = _line_search(model, name, theta0, fit_obs, scene, cfg.line_search, fit_start,
+                                    cfg.line_search_extend)
     values = _values(model, name)
     held_scores = [scores_per_frame(model, o, scene) for o in held_obs]
     res = [r for r, _ in held_scores]
