@@ -739,14 +739,12 @@ def test_the_line_search_continues_past_its_smallest_scale_only_when_asked():
     ob = EpisodeObs("e", None, "train", scene.dt, torch.full((T, 4, 3), 3.0), torch.ones(T), sp, frames, [])
     with torch.no_grad():
         ob.points = [st.means[::4].clone() for _, st in _rollout(world, ob, scene, frames)]
-    zero = [torch.zeros(())]
     found = []
     for extend in (0, 3):
         model = __import__("copy").deepcopy(sim)
         model.add_effect({"name": "mass_scale", "direct": True, "excess": 8.0})  # the "fit" overshot 8x
-        a, r = _line_search(model, "mass_scale", [z.reshape(p.shape) for z, (_, p) in
-                                                  zip(zero, model.acting_parameters("mass_scale"))],
-                            [ob], scene, [0.5, 1.0], float("inf"), extend)
+        zero = [torch.zeros_like(p) for _, p in model.acting_parameters("mass_scale")]
+        a, _ = _line_search(model, "mass_scale", zero, [ob], scene, [0.5, 1.0], float("inf"), extend)
         found.append((a, float(model.effects["mass_scale"].excess.detach())))
     assert found[0] == (0.5, pytest.approx(4.0))  # the list only
     assert found[1] == (0.125, pytest.approx(1.0))  # 0.25, 0.125 lower it; 0.0625 does not: stop
