@@ -675,31 +675,41 @@ def test_terms_cli_scores_hand_set_terms_on_the_heldout_episodes(clean_run, tmp_
     assert "error" in capsys.readouterr().err
 
 
-def test_fits_stay_inside_the_terms_physical_range():
-    """A world whose lifted rope is pulled down by 20 g: the mass_scale fit would take an excess of
-    about 20 (21 times the mass), outside its declared range [-0.9, 9]; the fit (grid start, Adam,
-    line search) stops on the bound and says so. Unbounded terms are unchanged by the projection."""
+def _falling_rope(excess: float):
+    """(model, observation, scene): a synthetic rope falling freely for 5 steps, observed (frames 2
+    and 4) in a world whose direct mass_scale term has ``excess``; the model has no such term."""
     from soma_ros.core.config import load_model_config
-    from soma_ros.core.effects import EFFECTS, build_effect
     from soma_ros.core.scenes import synthetic_rope
     from soma_ros.core.simulator import SceneContext, Simulator
-    from trainer.discrepancy import EpisodeObs, _line_search, _rollout, fit_effect
+    from trainer.discrepancy import EpisodeObs, _rollout
 
-    for name, cls in EFFECTS.items():  # every declared bound names a parameter and is an interval
-        eff = build_effect(name)
-        for n, (lo, hi) in cls.bounds.items():
-            assert isinstance(getattr(eff, n), torch.nn.Parameter) and lo < 0.0 < hi, (name, n)
     torch.manual_seed(0)
     sp = synthetic_rope(300, seed=1, center=(0.0, 0.0, 0.3))
     scene = SceneContext.table()
     sim = Simulator(load_model_config("cpu")).eval()
     sim.init_state(sp, scene)
     world = __import__("copy").deepcopy(sim)
-    world.add_effect({"name": "mass_scale", "direct": True, "excess": 20.0})
-    T, frames = 5, [2, 4]  # before the falling rope reaches the table: the residual falls all the way to 20
+    world.add_effect({"name": "mass_scale", "direct": True, "excess": excess})
+    T, frames = 5, [2, 4]  # before the falling rope reaches the table
     ob = EpisodeObs("e", None, "train", scene.dt, torch.full((T, 4, 3), 3.0), torch.ones(T), sp, frames, [])
     with torch.no_grad():
         ob.points = [st.means[::4].clone() for _, st in _rollout(world, ob, scene, frames)]
+    return sim, world, ob, scene
+
+
+def test_fits_stay_inside_the_terms_physical_range():
+    """A world whose lifted rope is pulled down by 20 g: the mass_scale fit would take an excess of
+    about 20 (21 times the mass), outside its declared range [-0.9, 9]; the fit (grid start, Adam,
+    line search) stops on the bound and says so. Unbounded terms are unchanged by the projection."""
+    from soma_ros.core.effects import EFFECTS, build_effect
+    from trainer.discrepancy import _line_search, _rollout, fit_effect
+
+    for name, cls in EFFECTS.items():  # every declared bound names a parameter and is an interval
+        eff = build_effect(name)
+        for n, (lo, hi) in cls.bounds.items():
+            assert isinstance(getattr(eff, n), torch.nn.Parameter) and lo < 0.0 < hi, (name, n)
+    sim, world, ob, scene = _falling_rope(20.0)  # the residual falls all the way to 20
+    frames = ob.frames
     cfg = load_discrepancy_config("fast", {"fit_iters": 6, "fit_lr": 0.5, "grid_start": [5, 10, 20, 40]})
     model, _, values = fit_effect(sim, "mass_scale", [ob], scene, cfg, cfg.fit_iters, log=lambda *a: None)
     assert values["excess"] == [pytest.approx(9.0)], values
@@ -721,24 +731,11 @@ def test_fits_stay_inside_the_terms_physical_range():
 def test_the_line_search_continues_past_its_smallest_scale_only_when_asked():
     """``line_search_extend``: a best scale at the end of the list is followed beyond it (that end's
     ratio) while the residual falls, and stops at the first scale that does not lower it."""
-    from soma_ros.core.config import load_model_config
-    from soma_ros.core.scenes import synthetic_rope
-    from soma_ros.core.simulator import SceneContext, Simulator
-    from trainer.discrepancy import EpisodeObs, _line_search, _rollout
+    from trainer.discrepancy import _line_search
 
     with pytest.raises(ValueError, match="line_search_extend"):
         load_discrepancy_config("fast", {"line_search_extend": -1})
-    torch.manual_seed(0)
-    sp = synthetic_rope(300, seed=1, center=(0.0, 0.0, 0.3))
-    scene = SceneContext.table()
-    sim = Simulator(load_model_config("cpu")).eval()
-    sim.init_state(sp, scene)
-    world = __import__("copy").deepcopy(sim)
-    world.add_effect({"name": "mass_scale", "direct": True, "excess": 1.0})
-    T, frames = 5, [2, 4]  # the rope falls freely: the residual is smallest at the world's excess
-    ob = EpisodeObs("e", None, "train", scene.dt, torch.full((T, 4, 3), 3.0), torch.ones(T), sp, frames, [])
-    with torch.no_grad():
-        ob.points = [st.means[::4].clone() for _, st in _rollout(world, ob, scene, frames)]
+    sim, _, ob, scene = _falling_rope(1.0)  # the residual is smallest at the world's excess
     found = []
     for extend in (0, 3):
         model = __import__("copy").deepcopy(sim)
