@@ -443,14 +443,14 @@ def test_identify_sets_the_physics_priors_coefficient_with_the_lowest_score(lift
 def test_identification_continues_a_grid_whose_best_value_is_on_its_edge():
     """``identify.extend``: the value beyond a grid's end continues that end's spacing (a ratio for
     compliances and damping, a difference for friction, never below 0); an interior value has none."""
-    from trainer.train import identify_beyond
+    from trainer.config import beyond_edge
 
-    assert identify_beyond([1.0, 3.0, 10.0, 30.0, 100.0], 100.0, True) == pytest.approx(100.0 * 100.0 / 30.0)
-    assert identify_beyond([100.0, 1.0, 3.0], 1.0, True) == pytest.approx(1.0 / 3.0)
-    assert identify_beyond([1.0, 3.0, 10.0], 3.0, True) is None
-    assert identify_beyond([5.0], 5.0, True) is None
-    assert identify_beyond([0.5, 1.0, 1.5], 1.5, False) == pytest.approx(2.0)
-    assert identify_beyond([0.2, 0.5], 0.2, False) == 0.0 and identify_beyond([0.0, 0.5], 0.0, False) is None
+    assert beyond_edge([1.0, 3.0, 10.0, 30.0, 100.0], 100.0, True) == pytest.approx(100.0 * 100.0 / 30.0)
+    assert beyond_edge([100.0, 1.0, 3.0], 1.0, True) == pytest.approx(1.0 / 3.0)
+    assert beyond_edge([1.0, 3.0, 10.0], 3.0, True) is None
+    assert beyond_edge([5.0], 5.0, True) is None
+    assert beyond_edge([0.5, 1.0, 1.5], 1.5, False) == pytest.approx(2.0)
+    assert beyond_edge([0.2, 0.5], 0.2, False) == 0.0 and beyond_edge([0.0, 0.5], 0.0, False) is None
 
 
 def test_the_rod_config_identifies_the_rods_bending_on_a_reference_world_rope(lift_dataset, tmp_path):

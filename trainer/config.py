@@ -337,6 +337,42 @@ class RunConfig:
 IDENTIFY_COEFFICIENTS = ("stretch", "bend", "grip", "tilt", "damping", "friction")
 
 
+def beyond_edge(values, edge: float, logarithmic: bool) -> Optional[float]:
+    """The next value to try beyond ``edge`` when it is the first or last of ``values`` (None
+    otherwise, or for fewer than two different values): that end's spacing continued, the ratio of
+    its two outermost values (``logarithmic``: compliances, damping, line-search scales) or their
+    difference (friction; clipped at 0, None once there)."""
+    vs = sorted({float(v) for v in values})
+    if len(vs) < 2 or edge not in (vs[0], vs[-1]):
+        return None
+    a, b = (vs[-2], vs[-1]) if edge == vs[-1] else (vs[1], vs[0])
+    if logarithmic:
+        return b * (b / a)
+    nxt = b + (b - a)
+    if nxt >= 0.0:
+        return nxt
+    return 0.0 if b > 0.0 else None
+
+
+def search_past_edge(values, best: float, best_score: float, score, steps: int,
+                     logarithmic: bool) -> tuple[float, float, list]:
+    """A grid search's best value ``best`` (score ``best_score``) on the edge of the ``values``
+    tried is not a minimum: score up to ``steps`` more values beyond it (:func:`beyond_edge`),
+    ``score(v) -> float``, each kept while it scores lower than the one before. Returns (best, its
+    score, every value tried)."""
+    tried = list(values)
+    for _ in range(steps):
+        nxt = beyond_edge(tried, best, logarithmic)
+        if nxt is None or nxt in tried:
+            break
+        s = score(nxt)
+        tried.append(nxt)
+        if not s < best_score:
+            break
+        best, best_score = nxt, s
+    return best, best_score, tried
+
+
 @dataclass
 class IdentifyConfig:
     """System identification of the physics prior (effect ``physics``) before training: the

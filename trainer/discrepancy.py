@@ -98,7 +98,7 @@ from soma_ros.core.render import render
 from soma_ros.core.simulator import SceneContext, SimulationDiverged, Simulator
 from soma_ros.core.splats import Splats
 
-from .config import load_train_config
+from .config import load_train_config, search_past_edge
 from .dataset import EpisodeData
 from .evaluate_metrics import EvalMetricsConfig, score_frame, table_depth
 
@@ -748,16 +748,7 @@ def _line_search(model: Simulator, name: str, theta0: list[torch.Tensor], obs: S
         r = score(a)
         if r < best:
             best_a, best = float(a), r
-    ends = sorted({float(a) for a in scales})
-    if extend > 0 and len(ends) >= 2 and best_a in (ends[0], ends[-1]):
-        ratio = ends[0] / ends[1] if best_a == ends[0] else ends[-1] / ends[-2]
-        a = best_a
-        for _ in range(extend):
-            a = a * ratio
-            r = score(a)
-            if not r < best:
-                break
-            best_a, best = a, r
+    best_a, best, _ = search_past_edge(scales, best_a, best, score, extend, logarithmic=True)  # a = 0: not an edge
     with torch.no_grad():
         for p, t, t0 in zip(params, theta, theta0):
             p.copy_(t0 + best_a * (t - t0))

@@ -63,7 +63,7 @@ from soma_ros.core.scene_bundle import SceneBundle
 from soma_ros.core.simulator import SceneContext, SimState, Simulator
 from soma_ros.core.splats import Splats
 
-from .config import TrainConfig
+from .config import TrainConfig, beyond_edge, search_past_edge
 from .dataset import EpisodeData, EpisodeRef, load_dataset, prepare_episode
 from .evaluate_metrics import complete_depth_maps, table_depth
 from .scene_setup import align_splats, setup_scene
@@ -609,30 +609,13 @@ _IDENTIFY_ATTR = {"stretch": "log_stretch", "bend": "log_bend", "grip": "log_gri
                   "damping": "log_damping", "friction": "friction"}
 
 
-def identify_beyond(values: Sequence[float], edge: float, logarithmic: bool) -> Optional[float]:
-    """The next value to try beyond ``edge`` when it is the first or last of ``values`` (None
-    otherwise, or for fewer than two different values): that end's spacing continued, the ratio of
-    its two outermost values (``logarithmic``: compliances, damping) or their difference (friction;
-    clipped at 0, None once there)."""
-    vs = sorted({float(v) for v in values})
-    if len(vs) < 2 or edge not in (vs[0], vs[-1]):
-        return None
-    a, b = (vs[-2], vs[-1]) if edge == vs[-1] else (vs[1], vs[0])
-    if logarithmic:
-        return b * (b / a)
-    nxt = b + (b - a)
-    if nxt >= 0.0:
-        return nxt
-    return 0.0 if b > 0.0 else None
-
-
 @torch.no_grad()
 def identify_prior(sim: Simulator, store: EpisodeStore, names: Sequence[str], cfg: TrainConfig, criterion: str,
                    dist: Optional[DistInfo] = None, say=print) -> dict:
     """System identification before training (:class:`~trainer.config.IdentifyConfig`): score the
     untrained model with the physics prior's coefficient at each grid value on ``names`` (training
     episodes) like a validation; while the best lies on the grid's edge, up to ``extend`` values
-    beyond it (:func:`identify_beyond`, each kept only while it scores lower); set the best
+    beyond it (:func:`~trainer.config.search_past_edge`, each kept only while it scores lower); set the best
     (``criterion``: ``val_loss`` or ``points``; ties keep the earlier value) and return
     ``{coefficient, criterion, episodes, chosen, rows}`` (rows beyond the grid: ``extended`` true)."""
     from soma_ros.core.physics import PhysicsPrior
@@ -647,6 +630,7 @@ def identify_prior(sim: Simulator, store: EpisodeStore, names: Sequence[str], cf
                          "(tilt: set grip_tilt_compliance > 0 on it)")
     log = ic.coefficient != "friction"
     rows: list[dict] = []
+    scores: list[float] = []  # the criterion of each row (inf where not finite)
 
     def score(v: float, extended: bool) -> float:
         param.fill_(math.log(v) if log else v)
@@ -655,23 +639,16 @@ def identify_prior(sim: Simulator, store: EpisodeStore, names: Sequence[str], cf
                      **({"extended": True} if extended else {})})
         say(f"identify {ic.coefficient} = {v:g}{' (beyond the grid)' if extended else ''}: "
             f"val_loss {r['val_loss']:.5f}, points {1e3 * r['points']:.2f} mm")
-        return r[criterion] if math.isfinite(r[criterion]) else math.inf
+        scores.append(r[criterion] if math.isfinite(r[criterion]) else math.inf)
+        return scores[-1]
 
-    scores = [score(v, False) for v in ic.values]
-    tried, edge, edge_score = list(ic.values), ic.values[int(np.argmin(scores))], min(scores)
-    for _ in range(ic.extend):
-        nxt = identify_beyond(tried, edge, log)
-        if nxt is None or nxt in tried:
-            break
-        s = score(nxt, True)
-        scores.append(s)
-        tried.append(nxt)
-        if not s < edge_score:
-            break
-        edge, edge_score = nxt, s
+    for v in ic.values:
+        score(v, False)
+    i = int(np.argmin(scores))
+    _, _, tried = search_past_edge(ic.values, ic.values[i], scores[i], lambda v: score(v, True), ic.extend, log)
     best = rows[int(np.argmin(scores))]
     param.fill_(math.log(best["value"]) if log else best["value"])
-    on_edge = identify_beyond(tried, best["value"], log) is not None
+    on_edge = beyond_edge(tried, best["value"], log) is not None
     say(f"identify: {ic.coefficient} = {best['value']:g} (lowest {criterion} on {len(names)} training episodes"
         + ("; on the edge of the values tried" if on_edge else "") + ")")
     return {"coefficient": ic.coefficient, "criterion": criterion, "episodes": list(names), "chosen": best["value"],
