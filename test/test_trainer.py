@@ -220,6 +220,42 @@ def test_trained_model_follows_the_lift(trained_run, lift_dataset):
         assert 0.5 < f["ratio"] < 2.5, f
 
 
+def test_another_datasets_episode_of_the_source_name_starts_aligned_to_its_own_frame(trained_run, lift_dataset,
+                                                                                       tmp_path):
+    """The scene's G_0 is reconstructed from one training episode (``rope_000``) and used as that
+    episode's initial state unaligned. An episode of the same name in another dataset (another world
+    seed: a rope placed elsewhere) is a different rope: it must start from G_0 aligned to its own
+    frame 0, as every other episode does, not from the training rope's place."""
+    from soma_ros.core.robot import RobotModel
+    from soma_ros.world import generate_dataset, load_world_config
+    from trainer.config import load_train_config
+    from trainer.dataset import load_dataset
+    from trainer.train import EpisodeStore, load_scene
+
+    run = trained_run["run"]
+    cfg = load_train_config(run / "train_config.yaml")
+    bundle, hier = load_scene(run / "scene")
+    source = bundle.extra["source_episode"]
+    robot = RobotModel.from_config(cfg.robot, dtype=torch.float64)
+    own = EpisodeStore(load_dataset(lift_dataset), robot, cfg, bundle, hier, None)
+    assert own.is_source(source)
+    assert torch.equal(own.initial_splats(source).means, bundle.splats.means)
+
+    other_dir = tmp_path / "other_seed"
+    generate_dataset(load_world_config(), "rope", "tiny", other_dir, episodes=1, seed=7, task="lift", progress=False)
+    refs = load_dataset(other_dir)
+    assert [r.name for r in refs] == [source]
+    other = EpisodeStore(refs, robot, cfg, bundle, hier, None)
+    assert not other.is_source(source)
+    pts, _ = other.episode(source).object_points([0])
+    centre = pts.double().mean(0)
+    g0_off = float((bundle.splats.means.double().mean(0) - centre).norm())
+    init_off = float((other.initial_splats(source).means.double().mean(0) - centre).norm())
+    print(f"\nseed-7 rope_000's frame-0 centre: {1000 * g0_off:.1f} mm from G_0's, {1000 * init_off:.1f} mm from its start")
+    assert g0_off > 0.02  # the two ropes lie apart: the test can tell the two starts apart
+    assert init_off < 0.25 * g0_off
+
+
 def test_default_coupling_prior_follows_the_lift_before_any_training(trained_run, lift_dataset):
     """The default `tiny` model's robot effect is the physical coupling (control points drag the
     splats in reach towards their velocity, strongly with the gripper closed): with random

@@ -357,11 +357,21 @@ class EpisodeStore:
             self._eps.popitem(last=False)
         return ep
 
+    def is_source(self, name: str) -> bool:
+        """Whether episode ``name`` is the one the scene's G_0 was reconstructed from: the same name and,
+        where the bundle records it, the same bag (another dataset's ``rope_000`` is a different rope
+        and needs G_0 aligned to its own frame 0, like any other episode)."""
+        extra = self.bundle.extra
+        if name != extra.get("source_episode"):
+            return False
+        src = extra.get("source_bag")
+        return src is None or Path(src).resolve() == Path(self.refs[name].bag).resolve()
+
     def initial_splats(self, name: str) -> Splats:
         """G_0 aligned to the episode's frame-0 object points (G_0 itself for its source episode)."""
         if name in self._init:
             return self._init[name]
-        if name == self.bundle.extra.get("source_episode"):
+        if self.is_source(name):
             sp = self.bundle.splats
         else:
             path = None if self.cache_dir is None else self.cache_dir / f"{name}.init.pt"
