@@ -126,7 +126,7 @@ class DiscrepancyConfig:
     line_search: list[float] = field(default_factory=lambda: [0.25, 0.5, 1.0, 1.5])  # scales of the fitted
     # parameters tried on the whole fit set (0, the unchanged model, always is)
     line_search_extend: int = 0  # a best scale that is the list's smallest or largest: up to this many more
-    # beyond it, with that end's ratio, while each lowers the residual (0: the list only; no shipped config sets it)
+    # beyond it, with that end's ratio, while each lowers the residual (0: the list only; physics.yaml sets 3)
     passive_friction: Optional[float] = 0.5  # the simulator's passive-object rule in every rollout, as the
     # live node runs it (friction coefficient); None: the checkpoint's setting; < 0: off
     passive_exempt_trained: bool = True  # the terms the model was trained with (its robot coupling) make a
