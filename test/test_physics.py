@@ -141,6 +141,32 @@ def test_modifiers_slip_stiffness_and_mass_change_the_held_rope_as_their_names_s
     assert strain(PhysicsMods(mass=torch.tensor(3.0))) > 2.0 * s0
 
 
+@pytest.mark.parametrize("solver", [{"bend_compliance": 1e-5},  # (the rod's bending compliance is per l^4)
+                                    {"solver": "newton", "bend_model": "rod", "bend_compliance": 30.0},
+                                    {"solver": "newton", "bend_model": "rod", "bend_compliance": 30.0,
+                                     "grip_tilt_compliance": 0.002}],
+                         ids=["jacobi", "newton_rod", "newton_rod_tilt"])
+def test_a_rigidly_held_rope_k_times_heavier_moves_as_one_k_times_softer(solver):
+    """Under the hard grip only the ratio of weight to stiffness shapes a held rope (the reference
+    world measures a 10x heavier and a 10x softer rope alike, docs/discrepancy.md session 34), so
+    mass_scale's x k and stiffness_scale's x 1/k give the same motion: the hold and its tilt are
+    compliances per unit node mass, like the rod's bending. Before session 39 the hold was not: a
+    heavier rope loosened the hard grip, and the mass term drooped less than the world's heavier rope."""
+    p = _params(stretch_compliance=1e-6, grip_compliance=3e-6, **solver)  # the grip tiny_physics_rod identifies
+    pts, m = _chain()
+    lay = build_layout(pts, m, UP, torch.tensor(10.0), p)  # the table far below
+    cp = _top_grip(lay)
+    move = torch.tensor([0.3, 0.0, 0.3])  # the fingers rise and carry it sideways at 0.42 m/s
+    base = _run(lay, p, lay.rest.clone(), 20, cp, True, None, move)
+    for k in (5.0, 10.0):
+        heavy = _run(lay, p, lay.rest.clone(), 20, cp, True, PhysicsMods(mass=torch.tensor(k - 1.0)), move)
+        soft = _run(lay, p, lay.rest.clone(), 20, cp, True, PhysicsMods(stiffness=torch.tensor(-math.log(k))), move)
+        gap = float((heavy - soft).norm(dim=-1).max())
+        effect = float((heavy - base).norm(dim=-1).max())
+        assert effect > 0.005, (k, effect)  # the heavier rope does hang differently
+        assert gap < 1e-3 * effect, (k, gap, effect)
+
+
 def _flat_rope(n=240, length=0.36, seed=0):
     """Splats of a straight rope lying on the table along x (z = 0.0065), centred at the origin."""
     g = torch.Generator().manual_seed(seed)

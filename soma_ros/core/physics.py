@@ -363,7 +363,12 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
     substep if it moved with them), backward Euler gives u' = (u - h r w^2 e) / (1 + 2 h r w + h^2 r w^2),
     w = 1/tau, r = the object's mass / the held nodes' mass (the spring carries the whole object:
     hanging rigidly in it, the object is a critically damped oscillator of time constant tau;
-    ``mods.mass`` divides r by the mass factor: the same spring, a heavier load).
+    ``mods.mass`` divides r by the mass factor: the same spring, a heavier load). The hard grip and
+    its tilt are compliances per unit node mass, as the rod's bending is: ``mods.mass`` scales the
+    inertia and the hold's stiffness alike, so a heavier object is held as rigidly, and a hanging
+    object k times heavier moves exactly as one with 1/k of the stretch and bending stiffness (as
+    in the physical world, where only the ratio of weight to stiffness shapes a rigidly held
+    object; session 39, docs/discrepancy.md).
     Differentiable in x, v, coef, mods and the grasp's offsets."""
     mods = mods or PhysicsMods()
     kept = grasp  # returned as it is: a lost grasp (holding nothing) stays lost while the gripper is closed
@@ -431,9 +436,9 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
                 axis = closing_axis(cps.detach())
                 if axis is not None:
                     axis = axis.to(x.dtype)
-                    hinge = (cps.mean(dim=0), axis, h2 / coef["tilt"],
+                    hinge = (cps.mean(dim=0), axis, h2 / (coef["tilt"] * w_inv),
                              _held_turn(x.detach(), grasp.held, grasp.offset.detach(), axis))
-            q = _newton_project(lay, q, alpha, w_inv, (heldf[:, 0] / a_grip, target) if hard else None,
+            q = _newton_project(lay, q, alpha, w_inv, (heldf[:, 0] / (a_grip * w_inv), target) if hard else None,
                                 p.newton_iterations, a_tri, hinge)
         else:
             for _ in range(p.iterations):
@@ -444,7 +449,7 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
                 dq = torch.zeros_like(q).index_add(0, lay.si, -corr).index_add(0, lay.sj, corr)
                 q = q + w_inv * dq * inv_deg
                 if hard:
-                    q = q + heldf * (target - q) * (w_inv / (w_inv + a_grip))
+                    q = q + heldf * (target - q) * (1.0 / (1.0 + a_grip))  # w_inv / (w_inv + a_grip w_inv)
         if cps is not None:  # control points push free nodes out of their contact radius
             dmin, jmin = torch.cdist(q, cps).min(dim=-1)
             pen = (p.contact_radius - dmin).clamp_min(0.0)
