@@ -141,7 +141,8 @@ def test_modifiers_slip_stiffness_and_mass_change_the_held_rope_as_their_names_s
     assert strain(PhysicsMods(mass=torch.tensor(3.0))) > 2.0 * s0
 
 
-@pytest.mark.parametrize("solver", [{"bend_compliance": 1e-5},  # (the rod's bending compliance is per l^4)
+@pytest.mark.parametrize("solver", [{"bend_compliance": 1e-5},
+                                    # the rod's bending compliance is per l^4 (RM identified 30)
                                     {"solver": "newton", "bend_model": "rod", "bend_compliance": 30.0},
                                     {"solver": "newton", "bend_model": "rod", "bend_compliance": 30.0,
                                      "grip_tilt_compliance": 0.002}],
