@@ -118,6 +118,26 @@ def fit_objective(ctx, cfg, models: dict) -> dict[str, tuple[float, float]]:
     return out
 
 
+def world_grasp(data: Path, episode: str) -> str:
+    """The suffix " (the world held vertices [...] of N)" from the episode's sidecar (``<episode>.meta.json``, evaluation
+    only: a diagnostic, never the workflow's input), or "" where the sidecar or its grasp is missing."""
+    meta = data / f"{episode}.meta.json"
+    try:
+        m = json.loads(meta.read_text())
+        held = sorted(int(i) for i in m["grasp"]["held_vertices"])
+        n = int(m["object_params"]["n_vertices"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return ""
+    return f" (the world held vertices {held} of {n})"
+
+
+def _ratio(value, base, scale: float, unit: str) -> str:
+    if value is None or base is None:
+        return "n/a"
+    rel = f" ({value / base:.2f}x)" if base > 0 else ""
+    return f"{scale * value:.4g} {unit}{rel}"
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.discrepancy_terms", description=__doc__.splitlines()[0])
     p.add_argument("--run", required=True, metavar="RUN", help="soma train run folder")
@@ -130,6 +150,9 @@ def main(argv=None) -> int:
                    help="also print every K-th frame's rise (cm) of the object's highest splat, per held-out episode")
     p.add_argument("--objective", action="store_true",
                    help="also print the workflow's fit objective (3D residual sum) on the fit and held-out episodes")
+    p.add_argument("--per-episode", action="store_true",
+                   help="also print every held-out episode's scores, with where the world held the object "
+                        "(its sidecar, evaluation only)")
     p.add_argument("--ground-truth-motion", action="store_true",
                    help="add the splats moved by the ground truth's motion (evaluation only: reads the ground-truth topic)")
     args = p.parse_args(argv)
@@ -166,6 +189,14 @@ def main(argv=None) -> int:
             print("                    " + "; ".join(
                 f"{c} {100 * v['pixels']:.1f}% of pixels, {100 * v['error']:.1f}% of the squared error, rms {v['rms']:.4f} m"
                 for c, v in shares.items()), flush=True)
+    if args.per_episode:
+        print("per held-out episode: depth RMSE m (x the unchanged model's on it), Chamfer mm (x):")
+        for episode, b in res[UNCHANGED]["episodes"].items():
+            print(f"  {episode}{world_grasp(Path(args.data), episode)}")
+            for name, r in res.items():
+                print(f"    {name:>20s}: " + ", ".join(
+                    _ratio(r["episodes"][episode].get(k), b.get(k), scale, unit)
+                    for k, scale, unit in (("rmse", 1.0, "m"), ("chamfer", 1000.0, "mm"))), flush=True)
     if args.objective:
         try:
             objective = fit_objective(ctx, cfg, models)

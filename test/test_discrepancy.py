@@ -649,7 +649,7 @@ def test_terms_cli_scores_hand_set_terms_on_the_heldout_episodes(clean_run, tmp_
                 "gale": [{"name": "wind", "accel": [0.0, 40.0, 0.0]}]}
     args = ["--run", str(root / "run"), "--data", str(data), "--config", "fast", "--json", str(out)]
     assert main(args + ["--variants", json.dumps(variants), "--breakdown", "--ground-truth-motion", "--heights", "5",
-                        "--objective"]) == 0
+                        "--objective", "--per-episode"]) == 0
     res = json.loads(out.read_text())
     assert set(res) == {"unchanged", "zero", "gale", "ground-truth motion"}
     assert res["zero"] == res["unchanged"]
@@ -657,6 +657,13 @@ def test_terms_cli_scores_hand_set_terms_on_the_heldout_episodes(clean_run, tmp_
     assert res["ground-truth motion"]["chamfer"] < res["gale"]["chamfer"]
     printed = capsys.readouterr().out
     assert "held-out episodes" in printed and printed.count("of the squared error") == 3 * 4
+    # per held-out episode: every model's scores, the unchanged model at 1.00x of itself, where the world held it
+    per = printed.split("per held-out episode")[1].split("the workflow's fit objective")[0].splitlines()[1:]
+    heads = [ln for ln in per if ln.startswith("  rope_")]
+    assert len(heads) == 2 and all("(the world held vertices [" in ln for ln in heads)
+    unchanged_rows = [ln for ln in per if ln.strip().startswith("unchanged:")]
+    assert len(unchanged_rows) == 2 and all(ln.count("(1.00x)") == 2 for ln in unchanged_rows)
+    assert len(per) == 2 * (1 + 4)
     rows = printed.split("rise of the highest splat")[1].splitlines()[1:]
     assert len(rows) == 2 * 4  # 2 held-out episodes x 4 models, every 5th frame
     assert all(ln.split(":")[1].split()[0] == "0" for ln in rows)  # frame 0: no rise
