@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -131,6 +132,67 @@ def world_grasp(data: Path, episode: str) -> str:
     return f" (the world held vertices {held} of {n})"
 
 
+ARM_BINS = (0.0, 0.05, 0.10, 0.15, 0.20, float("inf"))  # m from the grasp point, horizontally
+
+
+def arm_errors(ctx, models: dict, data: Path, frames: list[int]) -> dict:
+    """EVALUATION ONLY (the ground truth's motion and the world's sidecar): {held-out episode: {"held":
+    [vertex], "count": [splats per bin], "errors": {frame: {model: [(mean |e|, mean e_z) m per bin, or
+    None where a bin is empty]}}}}, e = a model's splat minus the same splat moved by the ground truth's
+    motion, the bins :data:`ARM_BINS` of each splat's horizontal distance at frame 0 from the world's
+    grasp point (along the table, its z the world's up). Episodes without a grasp in the sidecar are
+    left out."""
+    import torch
+
+    from trainer.discrepancy import HELDOUT
+
+    out = {}
+    for ref in ctx.episodes(HELDOUT):
+        try:
+            meta = json.loads((data / f"{ref.name}.meta.json").read_text())
+            tcp = torch.tensor(meta["grasp"]["tcp"], dtype=torch.float32)
+            held = sorted(int(i) for i in meta["grasp"]["held_vertices"])
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        ep, init = ctx.store.episode(ref.name), ctx.store.initial_splats(ref.name)
+        last = ep.num_frames - 1
+        bad = [f for f in frames if not 0 <= f <= last]
+        if bad:
+            raise ValueError(f"--arms: frames {bad} are outside {ref.name}'s 0..{last}")
+        roll = {}
+        for name, model in models.items():
+            with torch.no_grad():
+                roll[name] = [m.detach().float().clone() for m, _ in model.rollout(ep, init, ctx.scene)]
+        truth = roll[GROUND_TRUTH_MOTION]
+        dist = (truth[0][:, :2] - tcp[:2]).norm(dim=1)  # [N]
+        sel = [(dist >= a) & (dist < b) for a, b in zip(ARM_BINS[:-1], ARM_BINS[1:])]
+        errors = {}
+        for f in frames:
+            errors[f] = {}
+            for name, r in roll.items():
+                if name == GROUND_TRUTH_MOTION:
+                    continue
+                e = r[f] - truth[f]  # [N, 3]
+                errors[f][name] = [(float(e[s].norm(dim=1).mean()), float(e[s][:, 2].mean())) if bool(s.any()) else None
+                                   for s in sel]
+        out[ref.name] = {"held": held, "count": [int(s.sum()) for s in sel], "errors": errors}
+    return out
+
+
+def print_arm_errors(ctx, models: dict, data: Path, frames: list[int]) -> None:
+    res = arm_errors(ctx, models, data, frames)
+    edges = [f"{100 * a:.0f}-{100 * b:.0f}" if math.isfinite(b) else f"{100 * a:.0f}+"
+             for a, b in zip(ARM_BINS[:-1], ARM_BINS[1:])]
+    print("splats against the ground truth's motion, mean |error| and mean vertical error (mm), by distance (cm) "
+          "from the world's grasp point: " + " | ".join(edges))
+    for episode, r in res.items():
+        print(f"  {episode} (the world held vertices {r['held']}; splats per bin {r['count']})")
+        for f, per in r["errors"].items():
+            for name, cells in per.items():
+                print(f"    frame {f:3d} {name:>16s}: " + " | ".join(
+                    "      -      " if c is None else f"{1000 * c[0]:5.1f} z{1000 * c[1]:+6.1f}" for c in cells))
+
+
 def _ratio(value, base, scale: float, unit: str) -> str:
     if value is None or base is None:
         return "n/a"
@@ -153,6 +215,9 @@ def main(argv=None) -> int:
     p.add_argument("--per-episode", action="store_true",
                    help="also print every held-out episode's scores, with where the world held the object "
                         "(its sidecar, evaluation only)")
+    p.add_argument("--arms", default=None, metavar="F1,F2,...",
+                   help="with --ground-truth-motion: at these frames, every model's splats against the ground "
+                        "truth's motion, by their distance from where the world held the object (sidecar)")
     p.add_argument("--ground-truth-motion", action="store_true",
                    help="add the splats moved by the ground truth's motion (evaluation only: reads the ground-truth topic)")
     args = p.parse_args(argv)
@@ -197,6 +262,20 @@ def main(argv=None) -> int:
                 print(f"    {name:>20s}: " + ", ".join(
                     _ratio(r["episodes"][episode].get(k), b.get(k), scale, unit)
                     for k, scale, unit in (("rmse", 1.0, "m"), ("chamfer", 1000.0, "mm"))), flush=True)
+    if args.arms is not None:
+        try:
+            frames = [int(f) for f in args.arms.split(",")]
+        except ValueError:
+            print(f"discrepancy_terms: error: --arms takes frame numbers like 40,79, got {args.arms!r}", file=sys.stderr)
+            return 2
+        if GROUND_TRUTH_MOTION not in models:
+            print("discrepancy_terms: error: --arms needs --ground-truth-motion", file=sys.stderr)
+            return 2
+        try:
+            print_arm_errors(ctx, models, Path(args.data), frames)
+        except ValueError as e:  # a frame outside an episode
+            print(f"discrepancy_terms: error: {e}", file=sys.stderr)
+            return 2
     if args.objective:
         try:
             objective = fit_objective(ctx, cfg, models)

@@ -649,7 +649,7 @@ def test_terms_cli_scores_hand_set_terms_on_the_heldout_episodes(clean_run, tmp_
                 "gale": [{"name": "wind", "accel": [0.0, 40.0, 0.0]}]}
     args = ["--run", str(root / "run"), "--data", str(data), "--config", "fast", "--json", str(out)]
     assert main(args + ["--variants", json.dumps(variants), "--breakdown", "--ground-truth-motion", "--heights", "5",
-                        "--objective", "--per-episode"]) == 0
+                        "--objective", "--per-episode", "--arms", "0,11"]) == 0
     res = json.loads(out.read_text())
     assert set(res) == {"unchanged", "zero", "gale", "ground-truth motion"}
     assert res["zero"] == res["unchanged"]
@@ -658,12 +658,25 @@ def test_terms_cli_scores_hand_set_terms_on_the_heldout_episodes(clean_run, tmp_
     printed = capsys.readouterr().out
     assert "held-out episodes" in printed and printed.count("of the squared error") == 3 * 4
     # per held-out episode: every model's scores, the unchanged model at 1.00x of itself, where the world held it
-    per = printed.split("per held-out episode")[1].split("the workflow's fit objective")[0].splitlines()[1:]
+    per = printed.split("per held-out episode")[1].split("splats against the ground truth's motion")[0].splitlines()[1:]
     heads = [ln for ln in per if ln.startswith("  rope_")]
     assert len(heads) == 2 and all("(the world held vertices [" in ln for ln in heads)
     unchanged_rows = [ln for ln in per if ln.strip().startswith("unchanged:")]
     assert len(unchanged_rows) == 2 and all(ln.count("(1.00x)") == 2 for ln in unchanged_rows)
     assert len(per) == 2 * (1 + 4)
+    # splats against the ground truth's motion by distance from the grasp: none at frame 0 (every model starts
+    # from the same splats), the gale's further off than the unchanged model's at the last frame
+    arms = printed.split("splats against the ground truth's motion")[1].split("the workflow's fit objective")[0]
+    cells = {}
+    for ln in arms.splitlines():
+        if ln.strip().startswith("frame"):
+            f, name = int(ln.split()[1]), ln.split(":")[0].split()[-1]
+            vals = [float(c.split()[0]) for c in ln.split(":")[1].split("|") if c.strip() != "-"]
+            cells.setdefault((f, name), []).append(vals)
+    assert set(cells) == {(f, n) for f in (0, 11) for n in ("unchanged", "zero", "gale")}
+    assert all(len(v) == 2 for v in cells.values())  # both held-out episodes
+    assert all(x == 0.0 for vals in cells[(0, "gale")] + cells[(0, "unchanged")] for x in vals)
+    assert sum(map(sum, cells[(11, "gale")])) > sum(map(sum, cells[(11, "unchanged")]))
     rows = printed.split("rise of the highest splat")[1].splitlines()[1:]
     assert len(rows) == 2 * 4  # 2 held-out episodes x 4 models, every 5th frame
     assert all(ln.split(":")[1].split()[0] == "0" for ln in rows)  # frame 0: no rise
@@ -674,6 +687,8 @@ def test_terms_cli_scores_hand_set_terms_on_the_heldout_episodes(clean_run, tmp_
     assert set(obj) == {"unchanged", "zero", "gale"}
     assert obj["zero"] == obj["unchanged"] and all(v > 0 for v in obj["unchanged"])
     assert obj["gale"][0] > obj["unchanged"][0] and obj["gale"][1] > obj["unchanged"][1]
+    assert main(args + ["--variants", json.dumps(variants), "--arms", "0,6"]) == 2  # without the ground truth's motion
+    assert main(args + ["--variants", json.dumps(variants), "--ground-truth-motion", "--arms", "0,999"]) == 2
     assert main(args + ["--variants", "{not json"]) == 2
     assert main(args + ["--variants", '{"a": [{"accel": 1}]}']) == 2
     assert main(args + ["--variants", '{"unchanged": []}']) == 2
