@@ -1,10 +1,12 @@
 """Side views of a model's held-out rollouts against the reference world's rope, frame by frame.
 
     python -m benchmarks.rope_side_view --run RUN --data MEASURED --out FIG.png \
-        [--episodes rope_001,rope_004,rope_008] [--frames 40,50,60,79] [--config physics]
+        [--episodes rope_001,rope_004,rope_008] [--frames 40,50,60,79] [--config physics] \
+        [--variants '{"m10": [{"name": "mass_scale", "excess": 9.0}]}']
 
-One row per episode, one panel per frame: the model's splat centres (orange) and the world's rope
-vertices (blue, the ground-truth topic: EVALUATION ONLY), seen from the side, in the vertical plane
+One row per episode, one panel per frame: the model's splat centres (orange; with ``--variants``,
+the model with those effect terms added, as ``benchmarks.discrepancy_terms`` sets them, in further
+colours) and the world's rope vertices (blue, the ground-truth topic: EVALUATION ONLY), seen from the side, in the vertical plane
 through the rope's first-to-last vertex direction at frame 0 with the fingers' centre (the TCP,
 black cross) at the origin. The rollouts are the discrepancy workflow's (held-out split, its config:
 ``benchmarks.discrepancy_terms.build_models``), so the picture is of the rollouts its gap is
@@ -19,8 +21,10 @@ import sys
 from pathlib import Path
 
 
-def side_view(run: Path, data: Path, out: Path, episodes: list[str], frames: list[int], config: str = "physics") -> Path:
-    """Draw the figure (module docstring) to ``out``; returns it."""
+def side_view(run: Path, data: Path, out: Path, episodes: list[str], frames: list[int], config: str = "physics",
+              variants: dict | None = None) -> Path:
+    """Draw the figure (module docstring) to ``out``; returns it. ``variants``: {name: [effect spec, ...]}
+    (``benchmarks.discrepancy_terms.parse_variants``), drawn beside the model as trained."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -31,7 +35,7 @@ def side_view(run: Path, data: Path, out: Path, episodes: list[str], frames: lis
     from trainer.discrepancy import HELDOUT
     from trainer.evaluate_gt import read_ground_truth_points
 
-    ctx, _, models = build_models(run, data, {}, config)
+    ctx, _, models = build_models(run, data, variants or {}, config)
     refs = {r.name: r for r in ctx.episodes(HELDOUT)}
     missing = [e for e in episodes if e not in refs]
     if missing:
@@ -43,15 +47,17 @@ def side_view(run: Path, data: Path, out: Path, episodes: list[str], frames: lis
         if bad:
             raise ValueError(f"{name}: frames {bad} outside 0..{ep.num_frames - 1}")
         world = read_ground_truth_points(data / name)  # [T, M, 3]
-        sim = [s[0] for s in models[UNCHANGED].rollout(ep, init, ctx.scene)]
+        sims = {k: [s[0] for s in m.rollout(ep, init, ctx.scene)] for k, m in models.items()}
         axis = world[0][-1, :2] - world[0][0, :2]
         axis = axis / max(float(np.linalg.norm(axis)), 1e-9)
         for c, t in enumerate(frames):
             tcp = ep.control_points[t].mean(0).numpy()
-            s = sim[t].detach().double().numpy()
             w = world[t]
             ax = axs[r, c]
-            ax.scatter((s[:, :2] - tcp[:2]) @ axis, s[:, 2], s=2, c="tab:orange", label="model's splats")
+            for k, (key, sim) in enumerate(sims.items()):
+                s = sim[t].detach().double().numpy()
+                label = "model's splats" if key == UNCHANGED else f"with {key}"
+                ax.scatter((s[:, :2] - tcp[:2]) @ axis, s[:, 2], s=2, c=COLOURS[k % len(COLOURS)], label=label)
             ax.plot((w[:, :2] - tcp[:2]) @ axis, w[:, 2], "b.-", ms=4, lw=1, label="world's rope")
             ax.plot([0.0], [tcp[2]], "k+", ms=14, label="fingers (TCP)")
             ax.set_title(f"{name}, frame {t}")
@@ -67,6 +73,9 @@ def side_view(run: Path, data: Path, out: Path, episodes: list[str], frames: lis
     return out
 
 
+COLOURS = ("tab:orange", "tab:red", "tab:green", "tab:purple", "tab:brown")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.rope_side_view", description=__doc__.split("\n\n")[0])
     ap.add_argument("--run", required=True, type=Path, help="soma train run folder")
@@ -75,14 +84,19 @@ def main(argv=None) -> int:
     ap.add_argument("--episodes", default="rope_001,rope_004,rope_008", help="held-out episodes, comma-separated")
     ap.add_argument("--frames", default="40,50,60,79", help="frames, comma-separated")
     ap.add_argument("--config", default="physics", help="workflow config (config/discrepancy)")
+    ap.add_argument("--variants", default=None, metavar="JSON",
+                    help='also draw the model with these effect terms: {"name": [effect spec, ...], ...}')
     a = ap.parse_args(argv)
     try:
         frames = [int(f) for f in a.frames.split(",")]
     except ValueError:
         ap.error(f"--frames: integers, comma-separated; got {a.frames!r}")
     try:
-        out = side_view(a.run, a.data, a.out, [e for e in a.episodes.split(",") if e], frames, a.config)
-    except (ValueError, FileNotFoundError) as e:
+        from benchmarks.discrepancy_terms import parse_variants
+
+        variants = parse_variants(a.variants) if a.variants else None
+        out = side_view(a.run, a.data, a.out, [e for e in a.episodes.split(",") if e], frames, a.config, variants)
+    except (ValueError, FileNotFoundError) as e:  # incl. an unknown effect (ConfigError) or bad --variants
         print(f"rope_side_view: {e}", file=sys.stderr)
         return 2
     print(out)

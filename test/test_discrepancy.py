@@ -697,6 +697,28 @@ def test_terms_cli_scores_hand_set_terms_on_the_heldout_episodes(clean_run, tmp_
     assert "error" in capsys.readouterr().err
 
 
+def test_side_view_draws_a_variant_beside_the_model(clean_run, tmp_path, capsys):
+    """The side view draws the model as trained and one with a hand-set term on the held-out episodes
+    (a PNG written); an unknown term, bad --variants and a frame outside the episode are refused."""
+    from benchmarks.rope_side_view import main
+    from trainer.discrepancy import HELDOUT, load_discrepancy_config
+    from benchmarks.discrepancy_headroom import heldout_context
+
+    root, data = clean_run
+    ctx, _ = heldout_context(root / "run", data, load_discrepancy_config("fast"))
+    held = [r.name for r in ctx.episodes(HELDOUT)]
+    out = tmp_path / "side.png"
+    args = ["--run", str(root / "run"), "--data", str(data), "--config", "fast", "--episodes", held[0], "--frames", "0,11"]
+    assert main(args + ["--out", str(out), "--variants", '{"gale": [{"name": "wind", "accel": [0, 40, 0]}]}']) == 0
+    assert out.stat().st_size > 1000 and out.read_bytes()[:4] == b"\x89PNG"
+    assert main(args + ["--out", str(tmp_path / "x.png"), "--variants", '{"a": [{"name": "no_such_effect"}]}']) == 2
+    assert main(args + ["--out", str(tmp_path / "x.png"), "--variants", "{not json"]) == 2
+    bad = ["--run", str(root / "run"), "--data", str(data), "--config", "fast", "--episodes", held[0], "--frames", "99"]
+    assert main(bad + ["--out", str(tmp_path / "x.png")]) == 2
+    assert not (tmp_path / "x.png").exists()
+    assert "rope_side_view" in capsys.readouterr().err
+
+
 def _falling_rope(excess: float):
     """(model, observation, scene): a synthetic rope falling freely for 5 steps, observed (frames 2
     and 4) in a world whose direct mass_scale term has ``excess``; the model has no such term."""
