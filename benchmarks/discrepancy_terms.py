@@ -33,6 +33,7 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 UNCHANGED = "unchanged"
 GROUND_TRUTH_MOTION = "ground-truth motion"
@@ -119,17 +120,24 @@ def fit_objective(ctx, cfg, models: dict) -> dict[str, tuple[float, float]]:
     return out
 
 
-def world_grasp(data: Path, episode: str) -> str:
-    """The suffix " (the world held vertices [...] of N)" from the episode's sidecar (``<episode>.meta.json``, evaluation
-    only: a diagnostic, never the workflow's input), or "" where the sidecar or its grasp is missing."""
-    meta = data / f"{episode}.meta.json"
+def sidecar_grasp(data: Path, episode: str) -> Optional[tuple[list[float], list[int], int]]:
+    """(the world's grasp point [3], the vertices it held, the object's vertex count) from the episode's
+    sidecar (``<episode>.meta.json``; EVALUATION ONLY: a diagnostic, never the workflow's input), or
+    None where the sidecar or its grasp is missing."""
     try:
-        m = json.loads(meta.read_text())
+        m = json.loads((data / f"{episode}.meta.json").read_text())
+        tcp = [float(v) for v in m["grasp"]["tcp"]]
         held = sorted(int(i) for i in m["grasp"]["held_vertices"])
         n = int(m["object_params"]["n_vertices"])
     except (OSError, ValueError, KeyError, TypeError):
-        return ""
-    return f" (the world held vertices {held} of {n})"
+        return None
+    return tcp, held, n
+
+
+def world_grasp(data: Path, episode: str) -> str:
+    """The suffix " (the world held vertices [...] of N)" from the episode's sidecar, or "" without one."""
+    g = sidecar_grasp(data, episode)
+    return "" if g is None else f" (the world held vertices {g[1]} of {g[2]})"
 
 
 ARM_BINS = (0.0, 0.05, 0.10, 0.15, 0.20, float("inf"))  # m from the grasp point, horizontally
@@ -148,12 +156,10 @@ def arm_errors(ctx, models: dict, data: Path, frames: list[int]) -> dict:
 
     out = {}
     for ref in ctx.episodes(HELDOUT):
-        try:
-            meta = json.loads((data / f"{ref.name}.meta.json").read_text())
-            tcp = torch.tensor(meta["grasp"]["tcp"], dtype=torch.float32)
-            held = sorted(int(i) for i in meta["grasp"]["held_vertices"])
-        except (OSError, ValueError, KeyError, TypeError):
+        g = sidecar_grasp(data, ref.name)
+        if g is None:
             continue
+        tcp, held = torch.tensor(g[0], dtype=torch.float32), g[1]
         ep, init = ctx.store.episode(ref.name), ctx.store.initial_splats(ref.name)
         last = ep.num_frames - 1
         bad = [f for f in frames if not 0 <= f <= last]
@@ -226,6 +232,16 @@ def main(argv=None) -> int:
     except ValueError as e:
         print(f"discrepancy_terms: error: {e}", file=sys.stderr)
         return 2
+    arm_frames: list[int] = []
+    if args.arms is not None:
+        try:
+            arm_frames = [int(f) for f in args.arms.split(",")]
+        except ValueError:
+            print(f"discrepancy_terms: error: --arms takes frame numbers like 40,79, got {args.arms!r}", file=sys.stderr)
+            return 2
+        if not args.ground_truth_motion:
+            print("discrepancy_terms: error: --arms needs --ground-truth-motion", file=sys.stderr)
+            return 2
     run = Path(args.run)
     if not (run / "checkpoint.pt").is_file():
         print(f"discrepancy_terms: error: {run} has no checkpoint.pt (a soma train run folder)", file=sys.stderr)
@@ -262,17 +278,9 @@ def main(argv=None) -> int:
                 print(f"    {name:>20s}: " + ", ".join(
                     _ratio(r["episodes"][episode].get(k), b.get(k), scale, unit)
                     for k, scale, unit in (("rmse", 1.0, "m"), ("chamfer", 1000.0, "mm"))), flush=True)
-    if args.arms is not None:
+    if arm_frames:
         try:
-            frames = [int(f) for f in args.arms.split(",")]
-        except ValueError:
-            print(f"discrepancy_terms: error: --arms takes frame numbers like 40,79, got {args.arms!r}", file=sys.stderr)
-            return 2
-        if GROUND_TRUTH_MOTION not in models:
-            print("discrepancy_terms: error: --arms needs --ground-truth-motion", file=sys.stderr)
-            return 2
-        try:
-            print_arm_errors(ctx, models, Path(args.data), frames)
+            print_arm_errors(ctx, models, Path(args.data), arm_frames)
         except ValueError as e:  # a frame outside an episode
             print(f"discrepancy_terms: error: {e}", file=sys.stderr)
             return 2

@@ -689,6 +689,7 @@ def test_terms_cli_scores_hand_set_terms_on_the_heldout_episodes(clean_run, tmp_
     assert obj["gale"][0] > obj["unchanged"][0] and obj["gale"][1] > obj["unchanged"][1]
     assert main(args + ["--variants", json.dumps(variants), "--arms", "0,6"]) == 2  # without the ground truth's motion
     assert main(args + ["--variants", json.dumps(variants), "--ground-truth-motion", "--arms", "0,999"]) == 2
+    assert main(args + ["--variants", json.dumps(variants), "--ground-truth-motion", "--arms", "first,last"]) == 2
     assert main(args + ["--variants", "{not json"]) == 2
     assert main(args + ["--variants", '{"a": [{"accel": 1}]}']) == 2
     assert main(args + ["--variants", '{"unchanged": []}']) == 2
