@@ -547,6 +547,51 @@ def test_the_grips_tilt_is_identified_when_the_rod_config_turns_it_on(lift_datas
     assert float(sd["effects.terms.physics.log_tilt"]) == pytest.approx(math.log(s["identified"]["chosen"]), rel=1e-6)
 
 
+def test_identify_then_sets_a_second_coefficient_at_the_first_ones_choice(lift_dataset, tmp_path):
+    """``identify.then``: after the bending, the rod's stretch compliance is identified on the same
+    episodes with the chosen bending in place; both chosen values are in the checkpoint and the
+    record; malformed stages are refused."""
+    from soma_ros.core.checkpoint import read_checkpoint
+    from trainer.config import ConfigError, load_train_config
+    from trainer.train import train
+
+    for bad in ({"values": [1.0], "then": [{"values": [1e-9]}]},  # no coefficient
+                {"values": [1.0], "then": [{"coefficient": "stretch", "values": [1e-9], "episodes": 2}]},
+                {"values": [1.0], "then": [{"coefficient": "stretch", "values": []}]},
+                {"values": [1.0], "then": [{"coefficient": "youngs", "values": [1.0]}]},
+                {"values": [], "then": [{"coefficient": "stretch", "values": [1e-9]}]},
+                {"values": [1.0], "then": {"coefficient": "stretch"}}):
+        with pytest.raises(ConfigError, match="identify"):
+            load_train_config("tiny_physics_rod", {"identify": bad})
+    over = {"scene": {"photometric_iters": 3, "num_splats": 400},
+            "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 1, "stride": 2, "length_start": 2},
+                         "stage2": {"epochs": 0, "window": 3}},
+            "run": {"val_episodes": 1, "val_frame_stride": 6},
+            "identify": {"coefficient": "bend", "values": [1.0, 100.0], "episodes": 2,
+                         "then": [{"coefficient": "stretch", "values": [1e-9, 1e-4]}]}}
+    cfg = load_train_config("tiny_physics_rod", over)
+    assert cfg.identify.then == [{"coefficient": "stretch", "values": [1e-9, 1e-4], "extend": 0}]
+    run = tmp_path / "run"
+    logs: list = []
+    s = train(cfg, lift_dataset, run, max_iterations=0, log=lambda *a, **k: logs.append(a[0]))
+    ident = json.loads((run / "identify.json").read_text())
+    assert s["identified"] == ident and ident["coefficient"] == "bend" and len(ident["then"]) == 1
+    second = ident["then"][0]
+    assert second["coefficient"] == "stretch" and second["episodes"] == ident["episodes"]
+    assert [r["value"] for r in second["rows"]] == pytest.approx([1e-9, 1e-4])
+    losses = [r["val_loss"] for r in second["rows"]]
+    assert all(math.isfinite(v) for v in losses) and losses[0] != losses[1]  # the stretch changes the rollouts
+    # the second grid ran with the bending already chosen: its row at the trained stretch (1e-9, the
+    # config's) scores as the first grid's row at the chosen bending
+    chosen_row = next(r for r in ident["rows"] if r["value"] == ident["chosen"])
+    assert losses[0] == pytest.approx(chosen_row["val_loss"], rel=1e-9)
+    sd = read_checkpoint(run / "checkpoint.pt")["state_dict"]
+    assert float(sd["effects.terms.physics.log_bend"]) == pytest.approx(math.log(ident["chosen"]), rel=1e-6)
+    assert float(sd["effects.terms.physics.log_stretch"]) == pytest.approx(math.log(second["chosen"]), rel=1e-6)
+    assert [m.split(" (")[0] for m in logs if m.startswith("identify: ")] == [
+        f"identify: bend = {ident['chosen']:g}", f"identify: stretch = {second['chosen']:g}"]
+
+
 def test_a_non_finite_gradient_skips_the_step_and_keeps_the_weights():
     from trainer.train import clipped_step
 

@@ -386,12 +386,18 @@ class IdentifyConfig:
     ``extend``: a best value on the grid's first or last value is not a minimum, so up to ``extend``
     more values are scored beyond that end, with the end's spacing (the ratio of its two outermost
     values; friction: their difference, never below 0), as long as each new one scores lower than
-    the one before (0: the grid only)."""
+    the one before (0: the grid only).
+
+    ``then``: further coefficients identified in turn, each at the values chosen before it, on the
+    same episodes: ``[{coefficient, values, extend}, ...]`` (e.g. the bending first, then how far the
+    rope stretches; session 40: the reference world's rope stretches 10-15% next to the fingers,
+    where the default prior is nearly inextensible). Empty (default): one coefficient."""
 
     coefficient: str = "bend"
     values: list = field(default_factory=list)
     episodes: int = 3
     extend: int = 0
+    then: list = field(default_factory=list)
 
     def validate(self, where: str = "identify") -> None:
         if self.coefficient not in IDENTIFY_COEFFICIENTS:
@@ -409,6 +415,26 @@ class IdentifyConfig:
         if self.extend and len(set(vals)) < 2:
             raise ConfigError(f"{where}.extend: needs at least two different values to continue the grid, got {self.values!r}")
         self.values = vals
+        if not isinstance(self.then, list):
+            raise ConfigError(f"{where}.then: a list of {{coefficient, values, extend}}, got {self.then!r}")
+        if self.then and not vals:
+            raise ConfigError(f"{where}.then: needs values for the first coefficient ({self.coefficient})")
+        stages = []
+        for i, t in enumerate(self.then):
+            if not isinstance(t, Mapping) or set(t) - {"coefficient", "values", "extend"} or "coefficient" not in t:
+                raise ConfigError(f"{where}.then[{i}]: a mapping with a coefficient and its values (and extend), got {t!r}")
+            stage = IdentifyConfig(coefficient=t["coefficient"], values=list(t.get("values") or []),
+                                   episodes=self.episodes, extend=t.get("extend", 0))
+            stage.validate(f"{where}.then[{i}]")
+            if not stage.values:
+                raise ConfigError(f"{where}.then[{i}].values: at least one value")
+            stages.append({"coefficient": stage.coefficient, "values": stage.values, "extend": stage.extend})
+        self.then = stages
+
+    def stages(self) -> list["IdentifyConfig"]:
+        """The coefficients to identify, in order: this one, then each of ``then``."""
+        return [self] + [IdentifyConfig(coefficient=t["coefficient"], values=t["values"], episodes=self.episodes,
+                                        extend=t["extend"]) for t in self.then]
 
 
 @dataclass

@@ -627,14 +627,25 @@ def identify_prior(sim: Simulator, store: EpisodeStore, names: Sequence[str], cf
     episodes) like a validation; while the best lies on the grid's edge, up to ``extend`` values
     beyond it (:func:`~trainer.config.search_past_edge`, each kept only while it scores lower); set the best
     (``criterion``: ``val_loss`` or ``points``; ties keep the earlier value) and return
-    ``{coefficient, criterion, episodes, chosen, rows}`` (rows beyond the grid: ``extended`` true)."""
+    ``{coefficient, criterion, episodes, chosen, rows}`` (rows beyond the grid: ``extended`` true).
+    With ``then``, each further coefficient is identified the same way at the values chosen before
+    it, and its own such record is listed under ``"then"``."""
     from soma_ros.core.physics import PhysicsPrior
 
-    ic = cfg.identify
     terms = [sim.effects[k] for k in sim.effects.keys() if isinstance(sim.effects[k], PhysicsPrior)]
     if len(terms) != 1:
         raise ValueError(f"identify: needs exactly one effect 'physics' in the model, found {len(terms)}")
-    param = getattr(terms[0], _IDENTIFY_ATTR[ic.coefficient], None)
+    records = [_identify_one(terms[0], ic, sim, store, names, cfg, criterion, dist, say) for ic in cfg.identify.stages()]
+    first = records[0]
+    if len(records) > 1:
+        first["then"] = records[1:]
+    return first
+
+
+def _identify_one(term, ic, sim: Simulator, store: EpisodeStore, names: Sequence[str], cfg: TrainConfig,
+                  criterion: str, dist: Optional[DistInfo], say) -> dict:
+    """One coefficient's grid (and its continuation past an edge), the best value set: its record."""
+    param = getattr(term, _IDENTIFY_ATTR[ic.coefficient], None)
     if param is None:
         raise ValueError(f"identify: the physics effect has no coefficient {ic.coefficient!r} "
                          "(tilt: set grip_tilt_compliance > 0 on it)")
