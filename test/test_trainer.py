@@ -537,6 +537,14 @@ def test_the_grips_tilt_is_identified_when_the_rod_config_turns_it_on(lift_datas
     with pytest.raises(ValueError, match="no coefficient 'tilt'"):
         train(load_train_config("tiny_physics_rod", over), lift_dataset, tmp_path / "off", max_iterations=0,
               log=lambda *a, **k: None)
+    # asked as a later stage (identify.then), refused before the first grid is scored
+    logs: list = []
+    later = {**over, "identify": {"coefficient": "bend", "values": [1.0, 100.0], "episodes": 2,
+                                  "then": [{"coefficient": "tilt", "values": [0.002]}]}}
+    with pytest.raises(ValueError, match="no coefficient 'tilt'"):
+        train(load_train_config("tiny_physics_rod", later), lift_dataset, tmp_path / "off2", max_iterations=0,
+              log=lambda *a, **k: logs.append(a[0]))
+    assert not [m for m in logs if m.startswith("identify")]
     run = tmp_path / "run"
     s = train(load_train_config("tiny_physics_rod", {**over, "model_overrides": {**base.model_overrides,
                                                                                   "effects": effects}}),

@@ -635,7 +635,12 @@ def identify_prior(sim: Simulator, store: EpisodeStore, names: Sequence[str], cf
     terms = [sim.effects[k] for k in sim.effects.keys() if isinstance(sim.effects[k], PhysicsPrior)]
     if len(terms) != 1:
         raise ValueError(f"identify: needs exactly one effect 'physics' in the model, found {len(terms)}")
-    records = [_identify_one(terms[0], ic, sim, store, names, cfg, criterion, dist, say) for ic in cfg.identify.stages()]
+    stages = cfg.identify.stages()
+    for ic in stages:  # every coefficient must exist before the first grid is spent
+        if getattr(terms[0], _IDENTIFY_ATTR[ic.coefficient], None) is None:
+            raise ValueError(f"identify: the physics effect has no coefficient {ic.coefficient!r} "
+                             "(tilt: set grip_tilt_compliance > 0 on it)")
+    records = [_identify_one(terms[0], ic, sim, store, names, cfg, criterion, dist, say) for ic in stages]
     first = records[0]
     if len(records) > 1:
         first["then"] = records[1:]
@@ -645,10 +650,7 @@ def identify_prior(sim: Simulator, store: EpisodeStore, names: Sequence[str], cf
 def _identify_one(term, ic, sim: Simulator, store: EpisodeStore, names: Sequence[str], cfg: TrainConfig,
                   criterion: str, dist: Optional[DistInfo], say) -> dict:
     """One coefficient's grid (and its continuation past an edge), the best value set: its record."""
-    param = getattr(term, _IDENTIFY_ATTR[ic.coefficient], None)
-    if param is None:
-        raise ValueError(f"identify: the physics effect has no coefficient {ic.coefficient!r} "
-                         "(tilt: set grip_tilt_compliance > 0 on it)")
+    param = getattr(term, _IDENTIFY_ATTR[ic.coefficient])
     log = ic.coefficient != "friction"
     rows: list[dict] = []
     scores: list[float] = []  # the criterion of each row (inf where not finite)
