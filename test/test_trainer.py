@@ -434,6 +434,16 @@ def test_keep_best_points_keeps_the_lowest_validation_point_distance(lift_datase
     assert s2["best_iteration"] == s2["total_iterations"] == 5 and s2["kept"] == "best"
 
 
+def _identify_over(identify: dict) -> dict:
+    """Overrides for a quick run on lift_dataset (3 photometric iterations, one stage-1 epoch, one
+    validation episode) that identifies the prior's coefficients as ``identify`` says."""
+    return {"scene": {"photometric_iters": 3, "num_splats": 400},
+            "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 1, "stride": 2, "length_start": 2},
+                         "stage2": {"epochs": 0, "window": 3}},
+            "run": {"val_episodes": 1, "val_frame_stride": 6},
+            "identify": identify}
+
+
 def test_identify_sets_the_physics_priors_coefficient_with_the_lowest_score(lift_dataset, tmp_path):
     """``identify``: before training, the physics prior's bending compliance is set to each grid
     value, the untrained model is scored on training episodes (never the validation one) and the
@@ -448,11 +458,7 @@ def test_identify_sets_the_physics_priors_coefficient_with_the_lowest_score(lift
                 {"values": [1e-6], "extend": 2}):
         with pytest.raises(ConfigError, match="identify"):
             load_train_config("tiny_physics_newton", {"identify": bad})
-    over = {"scene": {"photometric_iters": 3, "num_splats": 400},
-            "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 1, "stride": 2, "length_start": 2},
-                         "stage2": {"epochs": 0, "window": 3}},
-            "run": {"val_episodes": 1, "val_frame_stride": 6},
-            "identify": {"coefficient": "bend", "values": [1e-7, 1e-5], "episodes": 2, "extend": 1}}
+    over = _identify_over({"coefficient": "bend", "values": [1e-7, 1e-5], "episodes": 2, "extend": 1})
     run = tmp_path / "run"
     logs: list = []
     s = train(load_train_config("tiny_physics_newton", over), lift_dataset, run, max_iterations=0,
@@ -496,11 +502,7 @@ def test_the_rod_config_identifies_the_rods_bending_on_a_reference_world_rope(li
     from trainer.config import load_train_config
     from trainer.train import load_scene, train
 
-    over = {"scene": {"photometric_iters": 3, "num_splats": 400},
-            "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 1, "stride": 2, "length_start": 2},
-                         "stage2": {"epochs": 0, "window": 3}},
-            "run": {"val_episodes": 1, "val_frame_stride": 6},
-            "identify": {"coefficient": "bend", "values": [1.0, 100.0], "episodes": 2}}
+    over = _identify_over({"coefficient": "bend", "values": [1.0, 100.0], "episodes": 2})
     cfg = load_train_config("tiny_physics_rod", over)
     run = tmp_path / "run"
     s = train(cfg, lift_dataset, run, max_iterations=0, log=lambda *a, **k: None)
@@ -529,11 +531,7 @@ def test_the_grips_tilt_is_identified_when_the_rod_config_turns_it_on(lift_datas
     for e in effects:
         if e["name"] == "physics":
             e["grip_tilt_compliance"] = 0.01
-    over = {"scene": {"photometric_iters": 3, "num_splats": 400},
-            "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 1, "stride": 2, "length_start": 2},
-                         "stage2": {"epochs": 0, "window": 3}},
-            "run": {"val_episodes": 1, "val_frame_stride": 6},
-            "identify": {"coefficient": "tilt", "values": [0.002, 0.2], "episodes": 2}}
+    over = _identify_over({"coefficient": "tilt", "values": [0.002, 0.2], "episodes": 2})
     with pytest.raises(ValueError, match="no coefficient 'tilt'"):
         train(load_train_config("tiny_physics_rod", over), lift_dataset, tmp_path / "off", max_iterations=0,
               log=lambda *a, **k: None)
@@ -571,12 +569,8 @@ def test_identify_then_sets_a_second_coefficient_at_the_first_ones_choice(lift_d
                 {"values": [1.0], "then": {"coefficient": "stretch"}}):
         with pytest.raises(ConfigError, match="identify"):
             load_train_config("tiny_physics_rod", {"identify": bad})
-    over = {"scene": {"photometric_iters": 3, "num_splats": 400},
-            "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 1, "stride": 2, "length_start": 2},
-                         "stage2": {"epochs": 0, "window": 3}},
-            "run": {"val_episodes": 1, "val_frame_stride": 6},
-            "identify": {"coefficient": "bend", "values": [1.0, 100.0], "episodes": 2,
-                         "then": [{"coefficient": "stretch", "values": [1e-9, 1e-4]}]}}
+    over = _identify_over({"coefficient": "bend", "values": [1.0, 100.0], "episodes": 2,
+                           "then": [{"coefficient": "stretch", "values": [1e-9, 1e-4]}]})
     cfg = load_train_config("tiny_physics_rod", over)
     assert cfg.identify.then == [{"coefficient": "stretch", "values": [1e-9, 1e-4], "extend": 0}]
     run = tmp_path / "run"
