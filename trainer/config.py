@@ -423,18 +423,21 @@ class IdentifyConfig:
         for i, t in enumerate(self.then):
             if not isinstance(t, Mapping) or set(t) - {"coefficient", "values", "extend"} or "coefficient" not in t:
                 raise ConfigError(f"{where}.then[{i}]: a mapping with a coefficient and its values (and extend), got {t!r}")
-            stage = IdentifyConfig(coefficient=t["coefficient"], values=list(t.get("values") or []),
-                                   episodes=self.episodes, extend=t.get("extend", 0))
+            stage = self._stage(t)
             stage.validate(f"{where}.then[{i}]")
             if not stage.values:
                 raise ConfigError(f"{where}.then[{i}].values: at least one value")
             stages.append({"coefficient": stage.coefficient, "values": stage.values, "extend": stage.extend})
         self.then = stages
 
+    def _stage(self, t: Mapping) -> "IdentifyConfig":
+        """One entry of ``then`` as its own identification, on this one's episodes."""
+        return IdentifyConfig(coefficient=t["coefficient"], values=list(t.get("values") or []),
+                              episodes=self.episodes, extend=t.get("extend", 0))
+
     def stages(self) -> list["IdentifyConfig"]:
         """The coefficients to identify, in order: this one, then each of ``then``."""
-        return [self] + [IdentifyConfig(coefficient=t["coefficient"], values=t["values"], episodes=self.episodes,
-                                        extend=t["extend"]) for t in self.then]
+        return [self] + [self._stage(t) for t in self.then]
 
 
 @dataclass
