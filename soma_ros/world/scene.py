@@ -23,6 +23,8 @@ __all__ = ["Scene", "build_scene", "CAMERA_NAMES", "optical_frame_id", "wrist_mo
 
 #: Camera names, in recording order.
 CAMERA_NAMES = ("cam_wrist", "cam_front", "cam_side")
+#: solref of the grasp's connect equalities (hand -> each held object vertex): a soft pin, 10 ms time constant
+GRASP_SOLREF = (0.01, 1.0)
 
 
 def optical_frame_id(cam: str) -> str:
@@ -214,7 +216,7 @@ def build_scene(
             name2=f"{OBJECT_FLEX_NAME}_{i}",
         )
         e.active = False
-        e.solref = [0.01, 1.0]
+        e.solref = list(GRASP_SOLREF)
 
     model = spec.compile()
     data = mujoco.MjData(model)
