@@ -442,6 +442,61 @@ def test_direct_force_on_some_splats_moves_them_relative_to_the_rest():
     assert float(disp[far].abs().max()) < 0.1 * float(disp[near].abs().mean())  # ...the far end barely moves
 
 
+def test_direct_splats_moves_splats_within_their_cluster_and_keeps_its_centre_of_mass():
+    """A direct force that shears every fine cluster (each splat pushed up in proportion to its offset
+    along the rope from its cluster's centre): with rigid fine clusters (the default) the splats keep
+    their offsets to the cluster, with ``dynamics.direct_splats`` they follow the push, and either way
+    each cluster's centre of mass moves alike (the excess over the cluster sums to zero on it)."""
+    torch.manual_seed(0)
+    sp = synthetic_rope(800, seed=3)
+    scene = SceneContext.table()
+
+    @register_effect("test_shear")
+    class Shear(Effect):
+        @dataclass
+        class Params:
+            k: float = 2.0  # 1/s^2 per m along the rope
+
+        def forward(self, ctx):
+            x = ctx.positions
+            return self.params.k * ctx.masses[:, None] * torch.stack(
+                [torch.zeros_like(x[:, 0]), torch.zeros_like(x[:, 0]), x[:, 0] - x[:, 0].mean()], 1)
+
+    try:
+        runs = {}
+        for flag in (False, True):
+            cfg = load_model_config("cpu")
+            cfg.dynamics.direct_splats = flag
+            cfg.effects.append(EffectSpec("test_shear", direct=True))
+            torch.manual_seed(1)
+            sim = _still_network(Simulator(cfg).eval())
+            with torch.no_grad():
+                s0 = sim.init_state(sp, scene)
+                runs[flag] = (s0, sim.rollout(s0, [_far()] * 8)[-1], sim.hierarchy.parents[0])
+    finally:
+        EFFECTS.pop("test_shear", None)
+    s0, last, parent = runs[False]
+    m = sp.mass[:, None]
+    k = int(parent.max()) + 1
+
+    def centres(x):
+        return torch.zeros(k, 3).index_add_(0, parent, m * x) / torch.zeros(k, 1).index_add_(0, parent, m)
+
+    def offsets(x):  # each splat's offset from its cluster's centre of mass
+        return x - centres(x)[parent]
+
+    moved = (last.means - s0.means).norm(dim=-1)
+    assert float(moved.max()) > 1e-3  # the shear moves the rope (its clusters, relative to each other)
+    assert float((offsets(last.means) - offsets(s0.means)).abs().max()) < 1e-6  # rigid fine clusters
+    s0f, lastf, parentf = runs[True]
+    assert torch.equal(parentf, parent) and torch.equal(s0f.means, s0.means)
+    within = (offsets(lastf.means) - offsets(s0f.means))[:, 2]
+    assert float(within.abs().max()) > 1e-4  # now the splats follow the push within their cluster...
+    along = sp.means[:, 0] - centres(sp.means)[parent][:, 0]
+    assert float((within * along).sum()) > 0  # ...up where it pushes up
+    assert torch.allclose(centres(lastf.means), centres(last.means), atol=1e-6)  # the clusters' motion unchanged
+
+
 @pytest.mark.parametrize("model", ["cpu", "paper"])
 def test_zero_force_direct_effects_are_a_bitwise_noop(model):
     """Random weights, robot pushing: adding every library candidate as a direct effect at its
