@@ -19,7 +19,9 @@ wrong term.
 ``--breakdown`` also prints where each variant's depth error lives (scored pixels by rendered
 opacity: covered, edge, missed; ``trainer.evaluate_metrics.depth_error_shares``);
 ``--heights K`` prints how far each variant lifts the object (its highest splat's rise above frame 0,
-every K-th frame of every held-out episode). ``--ground-truth-motion`` adds a row for the splats moved by the world's ground-truth motion
+every K-th frame of every held-out episode); ``--ends F1,F2`` where each arm's end hangs at those
+frames, in the world and in every model (a held rope's droop; evaluation only); ``--direct-splats``
+runs every model with ``dynamics.direct_splats`` on. ``--ground-truth-motion`` adds a row for the splats moved by the world's ground-truth motion
 (EVALUATION ONLY: it reads the ground-truth topic; ``benchmarks.discrepancy_headroom``), the floor
 the reconstruction and the renderer set.
 """
@@ -57,15 +59,19 @@ def parse_variants(text: str) -> dict[str, list[dict]]:
 
 
 def build_models(run: Path, data: Path, variants: dict[str, list[dict]], config: str = "default",
-                 ground_truth_motion: bool = False):
+                 ground_truth_motion: bool = False, direct_splats: bool = False):
     """(the workflow's held-out context of ``data``, its config, {name: rollout model}): the model as
-    trained under ``"unchanged"``, one per variant, the ground truth's motion if asked."""
+    trained under ``"unchanged"``, one per variant, the ground truth's motion if asked.
+    ``direct_splats``: every model with ``dynamics.direct_splats`` on (the direct terms also move the
+    splats within their fine clusters; :class:`soma_ros.core.config.DynamicsConfig`)."""
     from benchmarks.discrepancy_headroom import ground_truth_motion as gt_motion, heldout_context
     from trainer.baselines import SimulatorModel
     from trainer.discrepancy import load_discrepancy_config
 
     cfg = load_discrepancy_config(config)
     ctx, base = heldout_context(run, data, cfg)
+    if direct_splats:
+        base.config.dynamics.direct_splats = True
     models = {UNCHANGED: SimulatorModel(base)}
     for name, specs in variants.items():
         sim = copy.deepcopy(base)
@@ -199,6 +205,63 @@ def print_arm_errors(ctx, models: dict, data: Path, frames: list[int]) -> None:
                     "      -      " if c is None else f"{1000 * c[0]:5.1f} z{1000 * c[1]:+6.1f}" for c in cells))
 
 
+END_SPLATS = 10  # splats nearest each end vertex of the world's rope at frame 0 stand for the model's end
+
+
+def arm_ends(ctx, models: dict, data: Path, frames: list[int]) -> dict:
+    """EVALUATION ONLY (the ground-truth topic and the world's sidecar): {held-out episode: {"held":
+    [vertex], "ends": {frame: {"world" or model: [[along, up] of the first end, [along, up] of the last]}}}}
+    in m, relative to the world's middle held vertex at that frame, "along" horizontal along the
+    rope's first-to-last vertex direction at frame 0: where each arm of a held line object hangs, the
+    world's and every model's (its :data:`END_SPLATS` splats nearest the world's end vertex at frame 0).
+    Episodes without a grasp in the sidecar are left out."""
+    import numpy as np
+    import torch
+
+    from trainer.discrepancy import HELDOUT
+    from trainer.evaluate_gt import read_ground_truth_points
+
+    out = {}
+    for ref in ctx.episodes(HELDOUT):
+        g = sidecar_grasp(data, ref.name)
+        if g is None:
+            continue
+        held = g[1]
+        ep, init = ctx.store.episode(ref.name), ctx.store.initial_splats(ref.name)
+        bad = [f for f in frames if not 0 <= f < ep.num_frames]
+        if bad:
+            raise ValueError(f"--ends: frames {bad} are outside {ref.name}'s 0..{ep.num_frames - 1}")
+        world = read_ground_truth_points(data / ref.name)  # [T, M, 3]
+        mid = world[:, held[len(held) // 2]]  # [T, 3]
+        axis = world[0][-1, :2] - world[0][0, :2]
+        axis = axis / max(float(np.linalg.norm(axis)), 1e-9)
+
+        def rel(p, f):
+            d = np.asarray(p, dtype=float) - mid[f]
+            return [float(d[:2] @ axis), float(d[2])]
+
+        ends = {f: {"world": [rel(world[f][0], f), rel(world[f][-1], f)]} for f in frames}
+        for name, model in models.items():
+            with torch.no_grad():
+                roll = [m.detach().double().numpy() for m, _ in model.rollout(ep, init, ctx.scene)]
+            picks = [np.argsort(np.linalg.norm(roll[0] - world[0][i], axis=1))[:END_SPLATS] for i in (0, -1)]
+            for f in frames:
+                ends[f][name] = [rel(roll[f][k].mean(0), f) for k in picks]
+        out[ref.name] = {"held": held, "ends": ends}
+    return out
+
+
+def print_arm_ends(ctx, models: dict, data: Path, frames: list[int]) -> None:
+    res = arm_ends(ctx, models, data, frames)
+    print("arm ends (first vertex's, last vertex's) relative to the world's middle held vertex, cm: "
+          "(along the rope, up)")
+    for episode, r in res.items():
+        print(f"  {episode} (the world held vertices {r['held']})")
+        for f, per in r["ends"].items():
+            print(f"    frame {f:3d}: " + " | ".join(
+                f"{name} " + " ".join(f"({100 * a:+5.1f},{100 * u:+5.1f})" for a, u in e) for name, e in per.items()))
+
+
 def _ratio(value, base, scale: float, unit: str) -> str:
     if value is None or base is None:
         return "n/a"
@@ -224,6 +287,12 @@ def main(argv=None) -> int:
     p.add_argument("--arms", default=None, metavar="F1,F2,...",
                    help="with --ground-truth-motion: at these frames, every model's splats against the ground "
                         "truth's motion, by their distance from where the world held the object (sidecar)")
+    p.add_argument("--ends", default=None, metavar="F1,F2,...",
+                   help="also print, at these frames, where each arm's end hangs in the world and in every model "
+                        "(ground-truth topic and sidecar: evaluation only)")
+    p.add_argument("--direct-splats", action="store_true",
+                   help="run every model with dynamics.direct_splats on (direct terms also move splats within "
+                        "their fine clusters)")
     p.add_argument("--ground-truth-motion", action="store_true",
                    help="add the splats moved by the ground truth's motion (evaluation only: reads the ground-truth topic)")
     args = p.parse_args(argv)
@@ -242,6 +311,13 @@ def main(argv=None) -> int:
         if not args.ground_truth_motion:
             print("discrepancy_terms: error: --arms needs --ground-truth-motion", file=sys.stderr)
             return 2
+    end_frames: list[int] = []
+    if args.ends is not None:
+        try:
+            end_frames = [int(f) for f in args.ends.split(",")]
+        except ValueError:
+            print(f"discrepancy_terms: error: --ends takes frame numbers like 40,79, got {args.ends!r}", file=sys.stderr)
+            return 2
     run = Path(args.run)
     if not (run / "checkpoint.pt").is_file():
         print(f"discrepancy_terms: error: {run} has no checkpoint.pt (a soma train run folder)", file=sys.stderr)
@@ -252,7 +328,8 @@ def main(argv=None) -> int:
 
     t0 = time.time()
     try:
-        ctx, cfg, models = build_models(run, Path(args.data), variants, args.config, args.ground_truth_motion)
+        ctx, cfg, models = build_models(run, Path(args.data), variants, args.config, args.ground_truth_motion,
+                                        args.direct_splats)
         res = evaluate_heldout(models, ctx, cfg)
     except (ConfigError, FileNotFoundError) as e:  # an unknown effect or parameter, a missing dataset
         print(f"discrepancy_terms: error: {e}", file=sys.stderr)
@@ -281,6 +358,12 @@ def main(argv=None) -> int:
     if arm_frames:
         try:
             print_arm_errors(ctx, models, Path(args.data), arm_frames)
+        except ValueError as e:  # a frame outside an episode
+            print(f"discrepancy_terms: error: {e}", file=sys.stderr)
+            return 2
+    if end_frames:
+        try:
+            print_arm_ends(ctx, models, Path(args.data), end_frames)
         except ValueError as e:  # a frame outside an episode
             print(f"discrepancy_terms: error: {e}", file=sys.stderr)
             return 2

@@ -698,6 +698,42 @@ def test_terms_cli_scores_hand_set_terms_on_the_heldout_episodes(clean_run, tmp_
     assert "error" in capsys.readouterr().err
 
 
+def test_terms_cli_prints_where_the_arms_hang_and_runs_with_direct_splats(clean_run, tmp_path, capsys):
+    """--ends: the world's and every model's arm ends per held-out episode (all models alike at frame 0,
+    near the world's; a gale moves them by the last frame); --direct-splats reaches every model;
+    bad frames are refused."""
+    from benchmarks.discrepancy_terms import build_models, main
+
+    root, data = clean_run
+    variants = {"gale": [{"name": "wind", "accel": [0.0, 40.0, 40.0]}]}
+    args = ["--run", str(root / "run"), "--data", str(data), "--config", "fast", "--variants", json.dumps(variants)]
+    assert main(args + ["--ends", "0,11"]) == 0
+    printed = capsys.readouterr().out.split("arm ends")[1]
+    rows = {}
+    episode = None
+    for ln in printed.splitlines()[1:]:
+        if ln.startswith("  rope_"):
+            episode = ln.split()[0]
+            assert "(the world held vertices [" in ln
+        elif ln.strip().startswith("frame"):
+            f = int(ln.split()[1].rstrip(":"))
+            for cell in ln.split(":", 1)[1].split("|"):
+                name, rest = cell.strip().split(" ", 1)
+                rows[(episode, f, name)] = [float(v) for v in rest.replace("(", " ").replace(")", " ").replace(",", " ").split()]
+    episodes = {k[0] for k in rows}
+    assert len(episodes) == 2 and {k[2] for k in rows} == {"world", "unchanged", "gale"}
+    for e in episodes:
+        assert rows[(e, 0, "unchanged")] == rows[(e, 0, "gale")]  # the same splats at frame 0...
+        assert max(abs(a - b) for a, b in zip(rows[(e, 0, "unchanged")], rows[(e, 0, "world")])) < 6.0  # cm, near the world's (a tiny reconstruction)
+        assert max(abs(a - b) for a, b in zip(rows[(e, 11, "unchanged")], rows[(e, 11, "gale")])) > 0.5  # the gale moves them
+    assert main(args + ["--ends", "0,999"]) == 2 and main(args + ["--ends", "last"]) == 2
+    assert "--ends" in capsys.readouterr().err
+    for flag in (False, True):
+        _, _, models = build_models(root / "run", data, variants, "fast", direct_splats=flag)
+        assert [m.sim.config.dynamics.direct_splats for m in models.values()] == [flag, flag]
+    assert main(args + ["--direct-splats"]) == 0
+
+
 def test_side_view_draws_a_variant_beside_the_model(clean_run, tmp_path, capsys):
     """The side view draws the model as trained and one with a hand-set term on the held-out episodes
     (a PNG written); an unknown term, bad --variants and a frame outside the episode are refused."""
@@ -718,6 +754,27 @@ def test_side_view_draws_a_variant_beside_the_model(clean_run, tmp_path, capsys)
     assert main(bad + ["--out", str(tmp_path / "x.png")]) == 2
     assert not (tmp_path / "x.png").exists()
     assert "rope_side_view" in capsys.readouterr().err
+
+
+def test_static_hang_compares_the_prior_rod_with_the_world_rope(capsys):
+    """The world's flex rope and the physics prior's rod (the world rope's own bending coefficient),
+    held near the middle, both hang below the hold, both lower when 10x heavier, and agree within
+    1 cm along the rope (measured: 2.9 / 5.7 mm); bad holds are refused."""
+    from benchmarks.rope_static_hang import main, rod_bend_compliance, run_hangs
+    from soma_ros.world.config import load_world_config
+
+    rows = run_hangs("world/default", None, [1.0, 10.0], [10], None, "tiny_physics_rod", None, out=lambda s: None)
+    assert [r["mass_scale"] for r in rows] == [1.0, 10.0] and rows[0]["held"] == [10, 11, 12]
+    for side in ("world_ends", "prior_ends"):
+        light, heavy = rows[0][side], rows[1][side]
+        for arm in (0, 1):
+            assert light[arm][1] < -0.005 and heavy[arm][1] < light[arm][1] - 0.05  # droops, more when heavier
+    for r in rows:
+        assert r["mean_m"] < 0.01 and r["max_m"] < 0.03
+    rope = load_world_config("world/default").objects["rope"]
+    assert rod_bend_compliance(rope) == pytest.approx(rope.mass / rope.length / (math.pi * rope.young * rope.radius ** 4))
+    assert main(["--holds", "23"]) == 2 and main(["--mass-scales", "0"]) == 2
+    assert "rope_static_hang" in capsys.readouterr().err
 
 
 def _falling_rope(excess: float):
