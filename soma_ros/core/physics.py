@@ -367,8 +367,10 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
     its tilt are compliances per unit node mass, as the rod's bending is: ``mods.mass`` scales the
     inertia and the hold's stiffness alike, so a heavier object is held as rigidly, and a hanging
     object k times heavier moves exactly as one with 1/k of the stretch and bending stiffness (as
-    in the physical world, where only the ratio of weight to stiffness shapes a rigidly held
-    object; session 39, docs/discrepancy.md).
+    for an elastic rope, where only the ratio of weight to stiffness shapes a rigidly held
+    object; session 39, docs/discrepancy.md). The reference world's rope bends so, but its stretch
+    comes from soft constraints whose stiffness follows the mass, so a heavier world rope stretches
+    about as much as a lighter one (sessions 40-41).
     Differentiable in x, v, coef, mods and the grasp's offsets."""
     mods = mods or PhysicsMods()
     kept = grasp  # returned as it is: a lost grasp (holding nothing) stays lost while the gripper is closed
