@@ -83,20 +83,40 @@ def build_models(run: Path, data: Path, variants: dict[str, list[dict]], config:
     return ctx, cfg, models
 
 
-def rollout_heights(ctx, models: dict) -> dict[str, dict[str, list[float]]]:
+class HeldoutRollouts:
+    """Every model's splat centres ([N, 3] float per frame) on every held-out episode, each model rolled
+    out once per episode on first use and kept, so the diagnostics (``--heights``, ``--arms``,
+    ``--ends``) share one rollout instead of each rolling every model out again."""
+
+    def __init__(self, ctx, models: dict) -> None:
+        self.ctx, self.models = ctx, models
+        self._kept: dict[tuple[str, str], list] = {}
+
+    def means(self, name: str, episode: str) -> list:
+        key = (name, episode)
+        if key not in self._kept:
+            import torch
+
+            ep, init = self.ctx.store.episode(episode), self.ctx.store.initial_splats(episode)
+            with torch.no_grad():
+                self._kept[key] = [m.detach().float().clone()
+                                   for m, _ in self.models[name].rollout(ep, init, self.ctx.scene)]
+        return self._kept[key]
+
+
+def rollout_heights(ctx, models: dict, rolls: Optional[HeldoutRollouts] = None) -> dict[str, dict[str, list[float]]]:
     """{model: {held-out episode: [m per frame]}}: how far the object's highest splat has risen above
     its height in the first frame (along the table's normal), every frame of the open-loop rollout."""
     import torch
 
     from trainer.discrepancy import HELDOUT
 
+    rolls = rolls or HeldoutRollouts(ctx, models)
     n = torch.as_tensor(ctx.scene.plane_normal, dtype=torch.float32)
     out: dict[str, dict[str, list[float]]] = {name: {} for name in models}
     for ref in ctx.episodes(HELDOUT):
-        ep, init = ctx.store.episode(ref.name), ctx.store.initial_splats(ref.name)
-        for name, model in models.items():
-            with torch.no_grad():
-                top = [float((means.detach().float() @ n).max()) for means, _ in model.rollout(ep, init, ctx.scene)]
+        for name in models:
+            top = [float((means @ n).max()) for means in rolls.means(name, ref.name)]
             out[name][ref.name] = [h - top[0] for h in top]
     return out
 
@@ -149,7 +169,7 @@ def world_grasp(data: Path, episode: str) -> str:
 ARM_BINS = (0.0, 0.05, 0.10, 0.15, 0.20, float("inf"))  # m from the grasp point, horizontally
 
 
-def arm_errors(ctx, models: dict, data: Path, frames: list[int]) -> dict:
+def arm_errors(ctx, models: dict, data: Path, frames: list[int], rolls: Optional[HeldoutRollouts] = None) -> dict:
     """EVALUATION ONLY (the ground truth's motion and the world's sidecar): {held-out episode: {"held":
     [vertex], "count": [splats per bin], "errors": {frame: {model: [(mean |e|, mean e_z) m per bin, or
     None where a bin is empty]}}}}, e = a model's splat minus the same splat moved by the ground truth's
@@ -160,21 +180,18 @@ def arm_errors(ctx, models: dict, data: Path, frames: list[int]) -> dict:
 
     from trainer.discrepancy import HELDOUT
 
+    rolls = rolls or HeldoutRollouts(ctx, models)
     out = {}
     for ref in ctx.episodes(HELDOUT):
         g = sidecar_grasp(data, ref.name)
         if g is None:
             continue
         tcp, held = torch.tensor(g[0], dtype=torch.float32), g[1]
-        ep, init = ctx.store.episode(ref.name), ctx.store.initial_splats(ref.name)
-        last = ep.num_frames - 1
+        last = ctx.store.episode(ref.name).num_frames - 1
         bad = [f for f in frames if not 0 <= f <= last]
         if bad:
             raise ValueError(f"--arms: frames {bad} are outside {ref.name}'s 0..{last}")
-        roll = {}
-        for name, model in models.items():
-            with torch.no_grad():
-                roll[name] = [m.detach().float().clone() for m, _ in model.rollout(ep, init, ctx.scene)]
+        roll = {name: rolls.means(name, ref.name) for name in models}
         truth = roll[GROUND_TRUTH_MOTION]
         dist = (truth[0][:, :2] - tcp[:2]).norm(dim=1)  # [N]
         sel = [(dist >= a) & (dist < b) for a, b in zip(ARM_BINS[:-1], ARM_BINS[1:])]
@@ -191,8 +208,8 @@ def arm_errors(ctx, models: dict, data: Path, frames: list[int]) -> dict:
     return out
 
 
-def print_arm_errors(ctx, models: dict, data: Path, frames: list[int]) -> None:
-    res = arm_errors(ctx, models, data, frames)
+def print_arm_errors(ctx, models: dict, data: Path, frames: list[int], rolls: Optional[HeldoutRollouts] = None) -> None:
+    res = arm_errors(ctx, models, data, frames, rolls)
     edges = [f"{100 * a:.0f}-{100 * b:.0f}" if math.isfinite(b) else f"{100 * a:.0f}+"
              for a, b in zip(ARM_BINS[:-1], ARM_BINS[1:])]
     print("splats against the ground truth's motion, mean |error| and mean vertical error (mm), by distance (cm) "
@@ -208,7 +225,7 @@ def print_arm_errors(ctx, models: dict, data: Path, frames: list[int]) -> None:
 END_SPLATS = 10  # splats nearest each end vertex of the world's rope at frame 0 stand for the model's end
 
 
-def arm_ends(ctx, models: dict, data: Path, frames: list[int]) -> dict:
+def arm_ends(ctx, models: dict, data: Path, frames: list[int], rolls: Optional[HeldoutRollouts] = None) -> dict:
     """EVALUATION ONLY (the ground-truth topic and the world's sidecar): {held-out episode: {"held":
     [vertex], "ends": {frame: {"world" or model: [[along, up] of the first end, [along, up] of the last]}}}}
     in m, relative to the world's middle held vertex at that frame, "along" horizontal along the
@@ -216,18 +233,18 @@ def arm_ends(ctx, models: dict, data: Path, frames: list[int]) -> dict:
     world's and every model's (its :data:`END_SPLATS` splats nearest the world's end vertex at frame 0).
     Episodes without a grasp in the sidecar are left out."""
     import numpy as np
-    import torch
 
     from trainer.discrepancy import HELDOUT
     from trainer.evaluate_gt import read_ground_truth_points
 
+    rolls = rolls or HeldoutRollouts(ctx, models)
     out = {}
     for ref in ctx.episodes(HELDOUT):
         g = sidecar_grasp(data, ref.name)
         if g is None:
             continue
         held = g[1]
-        ep, init = ctx.store.episode(ref.name), ctx.store.initial_splats(ref.name)
+        ep = ctx.store.episode(ref.name)
         bad = [f for f in frames if not 0 <= f < ep.num_frames]
         if bad:
             raise ValueError(f"--ends: frames {bad} are outside {ref.name}'s 0..{ep.num_frames - 1}")
@@ -241,9 +258,8 @@ def arm_ends(ctx, models: dict, data: Path, frames: list[int]) -> dict:
             return [float(d[:2] @ axis), float(d[2])]
 
         ends = {f: {"world": [rel(world[f][0], f), rel(world[f][-1], f)]} for f in frames}
-        for name, model in models.items():
-            with torch.no_grad():
-                roll = [m.detach().double().numpy() for m, _ in model.rollout(ep, init, ctx.scene)]
+        for name in models:
+            roll = [m.double().numpy() for m in rolls.means(name, ref.name)]
             picks = [np.argsort(np.linalg.norm(roll[0] - world[0][i], axis=1))[:END_SPLATS] for i in (0, -1)]
             for f in frames:
                 ends[f][name] = [rel(roll[f][k].mean(0), f) for k in picks]
@@ -251,8 +267,8 @@ def arm_ends(ctx, models: dict, data: Path, frames: list[int]) -> dict:
     return out
 
 
-def print_arm_ends(ctx, models: dict, data: Path, frames: list[int]) -> None:
-    res = arm_ends(ctx, models, data, frames)
+def print_arm_ends(ctx, models: dict, data: Path, frames: list[int], rolls: Optional[HeldoutRollouts] = None) -> None:
+    res = arm_ends(ctx, models, data, frames, rolls)
     print("arm ends (first vertex's, last vertex's) relative to the world's middle held vertex, cm: "
           "(along the rope, up)")
     for episode, r in res.items():
@@ -355,15 +371,16 @@ def main(argv=None) -> int:
                 print(f"    {name:>20s}: " + ", ".join(
                     _ratio(r["episodes"][episode].get(k), b.get(k), scale, unit)
                     for k, scale, unit in (("rmse", 1.0, "m"), ("chamfer", 1000.0, "mm"))), flush=True)
+    rolls = HeldoutRollouts(ctx, models)  # shared by the diagnostics below
     if arm_frames:
         try:
-            print_arm_errors(ctx, models, Path(args.data), arm_frames)
+            print_arm_errors(ctx, models, Path(args.data), arm_frames, rolls)
         except ValueError as e:  # a frame outside an episode
             print(f"discrepancy_terms: error: {e}", file=sys.stderr)
             return 2
     if end_frames:
         try:
-            print_arm_ends(ctx, models, Path(args.data), end_frames)
+            print_arm_ends(ctx, models, Path(args.data), end_frames, rolls)
         except ValueError as e:  # a frame outside an episode
             print(f"discrepancy_terms: error: {e}", file=sys.stderr)
             return 2
@@ -377,7 +394,7 @@ def main(argv=None) -> int:
         for name, (fit_sum, held_sum) in objective.items():
             print(f"  {name:>16s}: fit episodes {fit_sum:.4f}, held-out episodes {held_sum:.4f}", flush=True)
     if args.heights > 0:
-        heights = rollout_heights(ctx, models)
+        heights = rollout_heights(ctx, models, rolls)
         print(f"rise of the highest splat above frame 0, cm, every {args.heights} frames:")
         for episode in next(iter(heights.values())):
             for name, per in heights.items():

@@ -732,6 +732,19 @@ def test_terms_cli_prints_where_the_arms_hang_and_runs_with_direct_splats(clean_
         _, _, models = build_models(root / "run", data, variants, "fast", direct_splats=flag)
         assert [m.sim.config.dynamics.direct_splats for m in models.values()] == [flag, flag]
     assert main(args + ["--direct-splats"]) == 0
+    # the diagnostics share one rollout per model and held-out episode, with the figures of fresh ones
+    from benchmarks.discrepancy_terms import HeldoutRollouts, rollout_heights
+    from benchmarks.discrepancy_terms import arm_ends as ends_of
+
+    ctx, _, models = build_models(root / "run", data, variants, "fast")
+    calls = []
+    for name, m in models.items():
+        m.rollout = (lambda run, key: lambda *a, **k: (calls.append(key), run(*a, **k))[1])(m.rollout, name)
+    rolls = HeldoutRollouts(ctx, models)
+    heights = rollout_heights(ctx, models, rolls)
+    ends = ends_of(ctx, models, data, [0, 11], rolls)
+    assert sorted(calls) == sorted(list(models) * len(episodes))
+    assert heights == rollout_heights(ctx, models) and ends == ends_of(ctx, models, data, [0, 11])
 
 
 def test_side_view_draws_a_variant_beside_the_model(clean_run, tmp_path, capsys):
