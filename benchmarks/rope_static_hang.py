@@ -1,7 +1,8 @@
 """The physics prior's rod against the reference world's rope, hanging at rest from a hold.
 
     python -m benchmarks.rope_static_hang [--world-config world/default] [--young 1e6] \
-        [--mass-scales 1,10] [--holds 3,8,10,13] [--run RUN | --config tiny_physics_rod [--bend 30]]
+        [--mass-scales 1,10] [--holds 3,8,10,13] [--run RUN | --config tiny_physics_rod [--bend 30]] \
+        [--swing 1.5 [--swing-damping 0.01]]
 
 Both start as the same straight, level rope (the world config's rope: length, segments, radius,
 mass; ``--young`` replaces its Young's modulus) with no table under it, held at three consecutive
@@ -18,6 +19,10 @@ vertices from ``--holds`` (the first index of each), and settle under gravity:
   ``--bend`` sets the bending compliance. A heavier rope is
   ``PhysicsMods.mass``, as the discrepancy workflow's ``mass_scale`` sets it; in the world the
   flex's mass is multiplied.
+
+``--swing SECONDS`` also releases both ropes from level and follows them that long, the world
+undamped (as it runs in the datasets), the prior with ``--swing-damping`` (default: its own): both
+arms' end heights every 3 frames and the long arm's swing period (its first two troughs).
 
 Printed per hold and mass scale: each arm's end (horizontal distance along the rope, height)
 relative to the hold, and the mean / largest distance between the world's vertices and the
@@ -43,10 +48,12 @@ PRIOR_DT = 1.0 / 30.0
 
 @dataclass
 class Hang:
-    """One settled rope: vertices or centre-line points [M, 3] and their arc length at rest [M]."""
+    """One rope: vertices or centre-line points [M, 3] (``track``: [F + 1, M, 3], every frame of a swing
+    from release) and their arc length at rest [M]."""
 
     points: np.ndarray
     arc: np.ndarray
+    track: Optional[np.ndarray] = None
 
 
 def _straight(obj, z: float) -> np.ndarray:
@@ -54,8 +61,10 @@ def _straight(obj, z: float) -> np.ndarray:
     return np.stack([np.linspace(-obj.length / 2, obj.length / 2, n), np.zeros(n), np.full(n, z)], 1)
 
 
-def world_hang(world_cfg, obj, held: list[int], mass_scale: float, z: float = 1.0) -> Hang:
-    """The world's rope (``obj``: its ObjectConfig) pinned at vertices ``held``, settled."""
+def world_hang(world_cfg, obj, held: list[int], mass_scale: float, z: float = 1.0, swing_frames: int = 0) -> Hang:
+    """The world's rope (``obj``: its ObjectConfig) pinned at vertices ``held``, settled (velocities
+    damped 1% per step for :data:`SETTLE_S`); with ``swing_frames`` > 0 instead released from level and
+    left undamped (as the world runs it) for that many frames at 30 Hz, every frame kept."""
     import mujoco
 
     from soma_ros.world.objects import ObjectGeometry, flexcomp_xml
@@ -80,18 +89,32 @@ def world_hang(world_cfg, obj, held: list[int], mass_scale: float, z: float = 1.
         e.data[3:6] = pts[i]
     m = spec.compile()
     d = mujoco.MjData(m)
-    for _ in range(int(round(SETTLE_S / m.opt.timestep))):
-        mujoco.mj_step(m, d)
-        d.qvel[:] *= 0.99
+    mujoco.mj_forward(m, d)
+    track = None
+    if swing_frames > 0:
+        per = int(round(PRIOR_DT / m.opt.timestep))
+        frames = [d.flexvert_xpos[va:va + n].copy()]
+        for _ in range(swing_frames):
+            for _ in range(per):
+                mujoco.mj_step(m, d)
+            frames.append(d.flexvert_xpos[va:va + n].copy())
+        track = np.stack(frames)
+    else:
+        for _ in range(int(round(SETTLE_S / m.opt.timestep))):
+            mujoco.mj_step(m, d)
+            d.qvel[:] *= 0.99
     out = d.flexvert_xpos[va:va + n].copy()
     if not np.isfinite(out).all():
         raise RuntimeError("world_hang: the world's rope diverged")
-    return Hang(out, pts[:, 0] - pts[0, 0])
+    return Hang(out, pts[:, 0] - pts[0, 0], track)
 
 
-def prior_hang(params, coef: dict, obj, held: list[int], mass_scale: float, z: float = 1.0, seed: int = 0) -> Hang:
+def prior_hang(params, coef: dict, obj, held: list[int], mass_scale: float, z: float = 1.0, seed: int = 0,
+               swing_frames: int = 0) -> Hang:
     """The physics prior's rope (``params``: PhysicsPrior.Params, ``coef``: its coefficients as
-    tensors) held where the world's vertices ``held`` are, settled: its nodes [K, 3]."""
+    tensors) held where the world's vertices ``held`` are, settled: its nodes [K, 3]; with
+    ``swing_frames`` > 0 released from level for that many 30 Hz steps, every frame kept (its
+    damping is ``coef["damping"]``: set it to compare with the world's undamped swing)."""
     import torch
 
     from soma_ros.core.physics import Grasp, PhysicsMods, build_layout, pbd_step
@@ -118,14 +141,25 @@ def prior_hang(params, coef: dict, obj, held: list[int], mass_scale: float, z: f
     mods = PhysicsMods(mass=torch.tensor(mass_scale - 1.0, dtype=f64))
     gravity = torch.tensor([0.0, 0.0, -9.81], dtype=f64)
     c64 = {k: v.detach().to(f64) for k, v in coef.items()}
-    for _ in range(int(round(SETTLE_S / PRIOR_DT))):
+    frames = [xn.numpy().copy()]
+    for _ in range(swing_frames if swing_frames > 0 else int(round(SETTLE_S / PRIOR_DT))):
         x1, grasp = pbd_step(lay, xn, vn, gravity, up, below, PRIOR_DT, params, c64, cp, cp, grasp, mods)
         vn = (x1 - xn) / PRIOR_DT
         xn = x1
+        if swing_frames > 0:
+            frames.append(xn.numpy().copy())
     out = xn.numpy()
     if not np.isfinite(out).all():
         raise RuntimeError("prior_hang: the prior's rope diverged")
-    return Hang(out, lay.rest[:, 0].numpy() - (-obj.length / 2))
+    return Hang(out, lay.rest[:, 0].numpy() - (-obj.length / 2), np.stack(frames) if swing_frames > 0 else None)
+
+
+def swing_period(heights: np.ndarray, dt: float = PRIOR_DT) -> Optional[float]:
+    """The time (s) between the first two troughs of an arm end's height over a swing [F + 1] (a trough:
+    lower than both neighbours), or None with fewer than two."""
+    h = np.asarray(heights, dtype=float)
+    troughs = [i for i in range(1, len(h) - 1) if h[i] < h[i - 1] and h[i] <= h[i + 1]]
+    return None if len(troughs) < 2 else (troughs[1] - troughs[0]) * dt
 
 
 def compare(world: Hang, prior: Hang) -> tuple[float, float]:
@@ -178,7 +212,12 @@ def prior_from(run: Optional[Path], config: str, bend: Optional[float]):
 
 
 def run_hangs(world_cfg: str, young: Optional[float], mass_scales: list[float], holds: list[int],
-              run: Optional[Path], config: str, bend: Optional[float], out=print) -> list[dict]:
+              run: Optional[Path], config: str, bend: Optional[float], out=print, swing_s: float = 0.0,
+              swing_damping: Optional[float] = None) -> list[dict]:
+    """Every hang (module docstring): one row per mass scale and hold. ``swing_s`` > 0: also released
+    from level and followed for that long, the world undamped, the prior with ``swing_damping``
+    (1/s; None: its own), both arms' end heights printed every 3 frames and each long arm's swing
+    period (:func:`swing_period`) added to the row."""
     from soma_ros.world.config import load_world_config
 
     wc = load_world_config(world_cfg)
@@ -213,7 +252,37 @@ def run_hangs(world_cfg: str, young: Optional[float], mass_scales: list[float], 
             out(f"mass x{ms:g} held {held}: world arms {f(wa)} {f(wb)}  prior {f(pa)} {f(pb)}  "
                 f"distance mean {1e3 * mean:.1f} mm, max {1e3 * worst:.1f} mm  (world segments "
                 f"{1e2 * seg.min():.2f}-{1e2 * seg.max():.2f} cm, rest {1e2 * obj.length / obj.segments:.2f})")
+            if swing_s > 0:
+                rows[-1].update(_swing(wc, obj, params, coef, held, ms, swing_s, swing_damping, hold, out))
     return rows
+
+
+def _swing(wc, obj, params, coef: dict, held: list[int], ms: float, seconds: float, damping: Optional[float],
+           hold: np.ndarray, out) -> dict:
+    """Release from level (run_hangs' ``swing_s``): prints the arms' end heights, returns the long arm's
+    periods {"world_period_s", "prior_period_s"} (None: fewer than two troughs)."""
+    import torch
+
+    frames = int(round(seconds / PRIOR_DT))
+    c = dict(coef)
+    if damping is not None:
+        c["damping"] = torch.tensor(float(damping), dtype=torch.float64)
+    w = world_hang(wc, obj, held, ms, swing_frames=frames)
+    p = prior_hang(params, c, obj, held, ms, swing_frames=frames)
+    long_first = hold[0] > 0.0  # the arm from arc 0 is the longer one when the hold is past the middle
+    res = {}
+    for name, h in (("world", w), ("prior", p)):
+        ends = [int(np.argmin(h.arc)), int(np.argmax(h.arc))]
+        for k, e in enumerate(ends):
+            z = h.track[:, e, 2] - hold[2]
+            out(f"    {name} {'first' if k == 0 else 'last '} arm's end, height (cm) every 3 frames: "
+                + " ".join(f"{100 * v:+5.1f}" for v in z[::3]))
+        z_long = h.track[:, ends[0 if long_first else 1], 2]
+        res[f"{name}_period_s"] = swing_period(z_long)
+    fmt = lambda v: "none" if v is None else f"{v:.2f} s"  # noqa: E731
+    out(f"    long arm's swing period (first two troughs): world {fmt(res['world_period_s'])}, "
+        f"prior {fmt(res['prior_period_s'])} (damping {float(c['damping']):g} /s)")
+    return res
 
 
 def main(argv: Optional[list[str]] = None) -> int:
@@ -226,6 +295,10 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--config", default="tiny_physics_rod", help="else: a training config's physics term")
     ap.add_argument("--bend", type=float, default=None,
                     help="the prior's bending compliance (default: the run's; with --config, the world rope's rho A / (4 E I))")
+    ap.add_argument("--swing", type=float, default=0.0, metavar="SECONDS",
+                    help="also release each rope from level and follow it this long, undamped in the world")
+    ap.add_argument("--swing-damping", type=float, default=None, metavar="PER_S",
+                    help="the prior's damping during --swing (default: its own)")
     a = ap.parse_args(argv)
     try:
         try:
@@ -235,7 +308,10 @@ def main(argv: Optional[list[str]] = None) -> int:
             raise ValueError("--mass-scales and --holds are comma-separated numbers") from None
         if min(scales) <= 0.1:  # PhysicsMods.mass > -0.9
             raise ValueError(f"--mass-scales: each must be > 0.1, got {scales}")
-        run_hangs(a.world_config, a.young, scales, holds, a.run, a.config, a.bend)
+        if a.swing < 0 or (a.swing_damping is not None and a.swing_damping < 0):
+            raise ValueError("--swing and --swing-damping must be >= 0")
+        run_hangs(a.world_config, a.young, scales, holds, a.run, a.config, a.bend, swing_s=a.swing,
+                  swing_damping=a.swing_damping)
     except (ValueError, FileNotFoundError) as e:
         print(f"rope_static_hang: error: {e}", file=sys.stderr)
         return 2

@@ -786,8 +786,23 @@ def test_static_hang_compares_the_prior_rod_with_the_world_rope(capsys):
         assert r["mean_m"] < 0.01 and r["max_m"] < 0.03
     rope = load_world_config("world/default").objects["rope"]
     assert rod_bend_compliance(rope) == pytest.approx(rope.mass / rope.length / (math.pi * rope.young * rope.radius ** 4))
-    assert main(["--holds", "23"]) == 2 and main(["--mass-scales", "0"]) == 2
+    assert main(["--holds", "23"]) == 2 and main(["--mass-scales", "0"]) == 2 and main(["--swing", "-1"]) == 2
     assert "rope_static_hang" in capsys.readouterr().err
+    # released from level: both ropes fall and swing back up; the period of a known swing is found
+    from benchmarks.rope_static_hang import PRIOR_DT, swing_period
+
+    lines = []
+    row = run_hangs("world/default", None, [1.0], [13], None, "tiny_physics_rod", None, out=lines.append,
+                    swing_s=1.0, swing_damping=0.01)[0]
+    heights = {ln.split(" arm")[0].strip(): [float(v) for v in ln.split(":")[1].split()] for ln in lines if "every 3 frames" in ln}
+    assert set(heights) == {"world first", "world last", "prior first", "prior last"}
+    for name in ("world first", "prior first"):  # the long arm: down, then partly back up
+        h = heights[name]
+        assert len(h) == 11 and abs(h[0]) < 0.5 and min(h) < -3.0 and h[-1] > min(h) + 0.5
+    assert all(0.2 < row[k] < 1.0 for k in ("world_period_s", "prior_period_s"))
+    t = np.arange(46) * PRIOR_DT
+    assert swing_period(np.cos(2 * np.pi * t / 0.4)) == pytest.approx(0.4)
+    assert swing_period(-t) is None
 
 
 def _falling_rope(excess: float):
