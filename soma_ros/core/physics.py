@@ -350,9 +350,16 @@ def grasp_nodes(lay: PhysicsLayout, x: torch.Tensor, cp: torch.Tensor, p: "Physi
 def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torch.Tensor, plane_normal: torch.Tensor,
              plane_offset: torch.Tensor, dt: float, p: "PhysicsPrior.Params", coef: dict[str, torch.Tensor],
              cp0: Optional[torch.Tensor] = None, cp1: Optional[torch.Tensor] = None, grasp: Optional[Grasp] = None,
-             mods: Optional[PhysicsMods] = None) -> tuple[torch.Tensor, Optional[Grasp]]:
+             mods: Optional[PhysicsMods] = None, return_velocity: bool = False):
     """(Node positions [K, 3] after one step of ``dt`` from positions x and velocities v [K, 3], the
-    grasp after it).
+    grasp after it[, with ``return_velocity`` the nodes' velocities [K, 3] at the end of the step]).
+
+    The end velocity is the last substep's: under gravity alone it is v + g dt, while the step's
+    mean velocity (x' - x) / dt is only v + g dt / 2 (substeps n: v + g dt (n + 1) / (2 n)). A caller
+    that starts the next step from the mean velocity (as the simulator's finite-difference
+    velocities are) gains only half of gravity's velocity per step: a free object falls at about
+    g / 2 and a hanging one swings too slowly, while every static shape is unchanged
+    (:class:`PhysicsPrior.Params` ``carry_velocity``; docs/discrepancy.md, session 41).
 
     ``coef``: the learnable coefficients as tensors (``stretch``, ``bend``, ``grip`` compliances,
     ``damping``, ``friction``); ``cp0`` / ``cp1`` [P, 3]: the control points at t and t+1 (None:
@@ -481,7 +488,7 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
     if grasp is not None and release != 0.0:  # the load (times the mass factor, 1 / w_inv) against the capacity
         if _lifted_fraction(lay, x.detach(), nrm, off, p) / float(w_inv.detach()) > math.exp(-release):
             kept = Grasp(torch.zeros_like(grasp.held), grasp.offset)  # slid out of the fingers
-    return x, kept
+    return (x, kept, v) if return_velocity else (x, kept)
 
 
 @torch.no_grad()
@@ -670,6 +677,11 @@ class PhysicsPrior(Effect):
         release_d0: float = 0.02  # m above a node's floor: below it the table carries the node (release rule)
         release_d1: float = 0.05  # m: from here up the grip carries all of the node's weight
         inelastic_table: bool = True  # a node pushed out of the table gains no velocity away from it
+        # each step starts from the nodes' velocities at the end of the prior's previous step (the
+        # splats' finite-difference velocity plus the prior's own difference between its end and mean
+        # velocity, carried in the state), not from the mean velocity over the step, which gains only
+        # half of gravity's velocity per step (pbd_step; docs/discrepancy.md, session 41)
+        carry_velocity: bool = False
 
     def __init__(self, params, *, attr_dim: int = 0) -> None:
         super().__init__(params, attr_dim=attr_dim)
@@ -697,6 +709,8 @@ class PhysicsPrior(Effect):
         if not p.grip_tilt_compliance >= 0.0 or (p.grip_tilt_compliance > 0.0 and p.solver != "newton"):
             raise ConfigError(f"effect physics: grip_tilt_compliance must be >= 0, and > 0 needs solver 'newton'; "
                               f"got {p.grip_tilt_compliance} with {p.solver!r}")
+        if not isinstance(p.carry_velocity, bool):
+            raise ConfigError(f"effect physics: carry_velocity must be true or false, got {p.carry_velocity!r}")
         if not 0.0 <= p.grasp_gather <= 1.0:
             raise ConfigError(f"effect physics: grasp_gather must be in [0, 1], got {p.grasp_gather}")
         if not 0.0 <= p.friction < 5.0 or p.contact_offset_max < 0:
@@ -759,10 +773,19 @@ class PhysicsPrior(Effect):
             cp0 = cp1 - float(ctx.dt) * ctx.control_velocities
             if float(ctx.gripper) < self.params.grip_threshold:  # closed: keep the grasp made when it closed
                 grasp = (ctx.state_in or {}).get(self.name) or grasp_nodes(lay, x, cp0, self.params)
-        x1, grasp = pbd_step(lay, x, v, ctx.gravity, ctx.plane_normal, ctx.plane_offset, float(ctx.dt), self.params,
-                             self.coefficients(), cp0, cp1 if robot else None, grasp, mods)
+        carry = self.params.carry_velocity
+        v0 = v
+        if carry:  # start from the end velocity of the prior's last step: v plus the lag it carried
+            lag = (ctx.state_in or {}).get(self.name + ":lag")
+            if lag is not None and tuple(lag.shape) == tuple(v.shape):
+                v0 = v + lag.to(v)
+        out = pbd_step(lay, x, v0, ctx.gravity, ctx.plane_normal, ctx.plane_offset, float(ctx.dt), self.params,
+                       self.coefficients(), cp0, cp1 if robot else None, grasp, mods, return_velocity=carry)
+        x1, grasp = out[0], out[1]
         if grasp is not None and ctx.state_out is not None:
             ctx.state_out[self.name] = grasp
+        if carry and ctx.state_out is not None:  # the end velocity minus the mean one the splats will have
+            ctx.state_out[self.name + ":lag"] = (out[2] - (x1 - x) / float(ctx.dt)).detach()
         dv = (x1 - x) / float(ctx.dt) - v  # [K, 3] velocity change of every node
         acc = (lay.skin_w[..., None] * dv[lay.skin_idx]).sum(1) * (torch.sigmoid(self.gain_logit) / float(ctx.dt))
         return ctx.masses[:, None] * acc
