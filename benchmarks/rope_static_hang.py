@@ -143,8 +143,10 @@ def prior_hang(params, coef: dict, obj, held: list[int], mass_scale: float, z: f
     c64 = {k: v.detach().to(f64) for k, v in coef.items()}
     frames = [xn.numpy().copy()]
     for _ in range(swing_frames if swing_frames > 0 else int(round(SETTLE_S / PRIOR_DT))):
-        x1, grasp = pbd_step(lay, xn, vn, gravity, up, below, PRIOR_DT, params, c64, cp, cp, grasp, mods)
-        vn = (x1 - xn) / PRIOR_DT
+        out = pbd_step(lay, xn, vn, gravity, up, below, PRIOR_DT, params, c64, cp, cp, grasp, mods,
+                       return_velocity=params.carry_velocity)
+        x1, grasp = out[0], out[1]
+        vn = out[2] if params.carry_velocity else (x1 - xn) / PRIOR_DT  # as PhysicsPrior.forward starts its steps
         xn = x1
         if swing_frames > 0:
             frames.append(xn.numpy().copy())
@@ -213,11 +215,12 @@ def prior_from(run: Optional[Path], config: str, bend: Optional[float]):
 
 def run_hangs(world_cfg: str, young: Optional[float], mass_scales: list[float], holds: list[int],
               run: Optional[Path], config: str, bend: Optional[float], out=print, swing_s: float = 0.0,
-              swing_damping: Optional[float] = None) -> list[dict]:
+              swing_damping: Optional[float] = None, carry_velocity: Optional[bool] = None) -> list[dict]:
     """Every hang (module docstring): one row per mass scale and hold. ``swing_s`` > 0: also released
     from level and followed for that long, the world undamped, the prior with ``swing_damping``
     (1/s; None: its own), both arms' end heights printed every 3 frames and each long arm's swing
-    period (:func:`swing_period`) added to the row."""
+    period (:func:`swing_period`) added to the row. ``carry_velocity``: the prior's setting of that
+    name (None: the run's or config's)."""
     from soma_ros.world.config import load_world_config
 
     wc = load_world_config(world_cfg)
@@ -233,9 +236,11 @@ def run_hangs(world_cfg: str, young: Optional[float], mass_scales: list[float], 
     if run is None and bend is None and prior_from(None, config, None)[0].bend_model == "rod":
         bend = rod_bend_compliance(obj)  # the world rope's own rho A / (4 E I)
     params, coef = prior_from(run, config, bend)
+    if carry_velocity is not None:
+        params = replace(params, carry_velocity=bool(carry_velocity))
     out(f"rope {obj.length} m, {obj.segments} segments, radius {obj.radius} m, mass {obj.mass} kg, Young {obj.young:g} Pa; "
         f"prior: {params.bend_model} bending {float(coef['bend']):.4g}, grip {float(coef['grip']):.3g}, "
-        f"stretch {float(coef['stretch']):.3g}, attach radius {params.attach_radius} m")
+        f"stretch {float(coef['stretch']):.3g}, attach radius {params.attach_radius} m, carry_velocity {params.carry_velocity}")
     rows = []
     for ms in mass_scales:
         for h0 in holds:
@@ -299,6 +304,8 @@ def main(argv: Optional[list[str]] = None) -> int:
                     help="also release each rope from level and follow it this long, undamped in the world")
     ap.add_argument("--swing-damping", type=float, default=None, metavar="PER_S",
                     help="the prior's damping during --swing (default: its own)")
+    ap.add_argument("--carry-velocity", choices=("on", "off"), default=None,
+                    help="the prior's carry_velocity (default: the run's or config's)")
     a = ap.parse_args(argv)
     try:
         try:
@@ -311,7 +318,8 @@ def main(argv: Optional[list[str]] = None) -> int:
         if a.swing < 0 or (a.swing_damping is not None and a.swing_damping < 0):
             raise ValueError("--swing and --swing-damping must be >= 0")
         run_hangs(a.world_config, a.young, scales, holds, a.run, a.config, a.bend, swing_s=a.swing,
-                  swing_damping=a.swing_damping)
+                  swing_damping=a.swing_damping,
+                  carry_velocity=None if a.carry_velocity is None else a.carry_velocity == "on")
     except (ValueError, FileNotFoundError) as e:
         print(f"rope_static_hang: error: {e}", file=sys.stderr)
         return 2

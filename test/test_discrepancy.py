@@ -800,6 +800,13 @@ def test_static_hang_compares_the_prior_rod_with_the_world_rope(capsys):
         h = heights[name]
         assert len(h) == 11 and abs(h[0]) < 0.5 and min(h) < -3.0 and h[-1] > min(h) + 0.5
     assert all(0.2 < row[k] < 1.0 for k in ("world_period_s", "prior_period_s"))
+    # the prior started from its end velocities (carry_velocity) falls faster and swings faster
+    lines_cv = []
+    row_cv = run_hangs("world/default", None, [1.0], [13], None, "tiny_physics_rod", None, out=lines_cv.append,
+                       swing_s=1.0, swing_damping=0.01, carry_velocity=True)[0]
+    first = [ln for ln in lines_cv if ln.strip().startswith("prior first")][0]
+    assert float(first.split(":")[1].split()[1]) < heights["prior first"][1] - 0.5  # lower after 0.1 s
+    assert row_cv["prior_period_s"] < row["prior_period_s"] and row_cv["world_period_s"] == row["world_period_s"]
     t = np.arange(46) * PRIOR_DT
     assert swing_period(np.cos(2 * np.pi * t / 0.4)) == pytest.approx(0.4)
     assert swing_period(-t) is None
