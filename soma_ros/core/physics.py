@@ -11,8 +11,8 @@ inextensible, the table carries and brakes it, the gripper holds and pushes it -
 the discrepancy workflow's candidate effects (wind, drag, table friction, a slipping grip,
 mass, stiffness) a physical meaning: they act inside this model (:class:`PhysicsMods`).
 
-Model (per step t -> t+1, stateless: everything is read from the simulator's state)
--------------------------------------------------------------------------------------
+Model (per step t -> t+1; the grasp, and with ``carry_velocity`` a velocity lag, carried in the simulator's state)
+------------------------------------------------------------------------------------------------------------------
 * **Nodes.** ``num_nodes`` farthest-point samples of the episode's initial splats; every splat
   belongs to its nearest sample's cell, a node is its cell's centre of mass and moves with
   it (position and velocity = the mass-weighted means of its splats' at t).
@@ -71,6 +71,10 @@ Model (per step t -> t+1, stateless: everything is read from the simulator's sta
   node, carried to the splats by linear-blend skinning (``skin_neighbors`` nearest nodes); the
   term's force makes the fraction ``gain`` of it happen:
   ``F_i = m_i gain sum_k W_ik (v_k' - v_k) / dt``. The network adds its own motion on top.
+  A step starts from the nodes' velocities as the simulator has them (the splats' mean velocity
+  over the last step); with ``carry_velocity`` from the prior's own end-of-step velocities instead,
+  the difference carried to the next step in the simulator's state like the grasp (the mean
+  velocity gains only half of gravity's velocity per step: :func:`pbd_step`).
 
 At rest stays at rest: with no control point within ``reach`` of any node, every node at
 exactly zero velocity and no modifier force, the force is exactly zero (no constraint solve),

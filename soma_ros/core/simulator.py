@@ -56,8 +56,8 @@ cluster levels); otherwise splats follow their fine cluster, which only translat
 as the network says: a direct term that bends the object within a fine cluster (the physics
 prior's rod) is realised only as far as the clusters' translations follow it (session 41,
 docs/discrepancy.md). Reference effects (gravity, support) cannot be direct
-(their response is the learned one, subtracted at rest). With no direct effect the step is the network-only step, bit for bit; a direct
-effect whose force is zero adds exact zeros (same positions). A direct effect with
+(their response is the learned one, subtracted at rest). With no direct effect
+the step is the network-only step, bit for bit; a direct effect whose force is zero adds exact zeros (same positions). A direct effect with
 ``feature: false`` is left out of the F/m feature: pure physics the network does not
 see, so it responds only to the motion the term causes (the default ``tiny`` training
 config runs the robot coupling this way: with the force also as a feature, the network
