@@ -166,6 +166,22 @@ def world_grasp(data: Path, episode: str) -> str:
     return "" if g is None else f" (the world held vertices {g[1]} of {g[2]})"
 
 
+def _grasped_heldout(ctx, data: Path, frames: list[int], option: str):
+    """(held-out episode ref, its sidecar grasp) for every held-out episode with a grasp in its sidecar;
+    ValueError naming ``option`` where a frame is outside an episode."""
+    from trainer.discrepancy import HELDOUT
+
+    for ref in ctx.episodes(HELDOUT):
+        g = sidecar_grasp(data, ref.name)
+        if g is None:
+            continue
+        last = ctx.store.episode(ref.name).num_frames - 1
+        bad = [f for f in frames if not 0 <= f <= last]
+        if bad:
+            raise ValueError(f"{option}: frames {bad} are outside {ref.name}'s 0..{last}")
+        yield ref, g
+
+
 ARM_BINS = (0.0, 0.05, 0.10, 0.15, 0.20, float("inf"))  # m from the grasp point, horizontally
 
 
@@ -178,19 +194,10 @@ def arm_errors(ctx, models: dict, data: Path, frames: list[int], rolls: Optional
     left out."""
     import torch
 
-    from trainer.discrepancy import HELDOUT
-
     rolls = rolls or HeldoutRollouts(ctx, models)
     out = {}
-    for ref in ctx.episodes(HELDOUT):
-        g = sidecar_grasp(data, ref.name)
-        if g is None:
-            continue
+    for ref, g in _grasped_heldout(ctx, data, frames, "--arms"):
         tcp, held = torch.tensor(g[0], dtype=torch.float32), g[1]
-        last = ctx.store.episode(ref.name).num_frames - 1
-        bad = [f for f in frames if not 0 <= f <= last]
-        if bad:
-            raise ValueError(f"--arms: frames {bad} are outside {ref.name}'s 0..{last}")
         roll = {name: rolls.means(name, ref.name) for name in models}
         truth = roll[GROUND_TRUTH_MOTION]
         dist = (truth[0][:, :2] - tcp[:2]).norm(dim=1)  # [N]
@@ -234,20 +241,12 @@ def arm_ends(ctx, models: dict, data: Path, frames: list[int], rolls: Optional[H
     Episodes without a grasp in the sidecar are left out."""
     import numpy as np
 
-    from trainer.discrepancy import HELDOUT
     from trainer.evaluate_gt import read_ground_truth_points
 
     rolls = rolls or HeldoutRollouts(ctx, models)
     out = {}
-    for ref in ctx.episodes(HELDOUT):
-        g = sidecar_grasp(data, ref.name)
-        if g is None:
-            continue
+    for ref, g in _grasped_heldout(ctx, data, frames, "--ends"):
         held = g[1]
-        ep = ctx.store.episode(ref.name)
-        bad = [f for f in frames if not 0 <= f < ep.num_frames]
-        if bad:
-            raise ValueError(f"--ends: frames {bad} are outside {ref.name}'s 0..{ep.num_frames - 1}")
         world = read_ground_truth_points(data / ref.name)  # [T, M, 3]
         mid = world[:, held[len(held) // 2]]  # [T, 3]
         axis = world[0][-1, :2] - world[0][0, :2]
@@ -285,6 +284,16 @@ def _ratio(value, base, scale: float, unit: str) -> str:
     return f"{scale * value:.4g} {unit}{rel}"
 
 
+def _frames(option: str, text: Optional[str]) -> list[int]:
+    """``"40,79"`` -> [40, 79] (None -> []); ValueError naming ``option`` otherwise."""
+    if text is None:
+        return []
+    try:
+        return [int(f) for f in text.split(",")]
+    except ValueError:
+        raise ValueError(f"{option} takes frame numbers like 40,79, got {text!r}") from None
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.discrepancy_terms", description=__doc__.splitlines()[0])
     p.add_argument("--run", required=True, metavar="RUN", help="soma train run folder")
@@ -317,23 +326,13 @@ def main(argv=None) -> int:
     except ValueError as e:
         print(f"discrepancy_terms: error: {e}", file=sys.stderr)
         return 2
-    arm_frames: list[int] = []
-    if args.arms is not None:
-        try:
-            arm_frames = [int(f) for f in args.arms.split(",")]
-        except ValueError:
-            print(f"discrepancy_terms: error: --arms takes frame numbers like 40,79, got {args.arms!r}", file=sys.stderr)
-            return 2
-        if not args.ground_truth_motion:
-            print("discrepancy_terms: error: --arms needs --ground-truth-motion", file=sys.stderr)
-            return 2
-    end_frames: list[int] = []
-    if args.ends is not None:
-        try:
-            end_frames = [int(f) for f in args.ends.split(",")]
-        except ValueError:
-            print(f"discrepancy_terms: error: --ends takes frame numbers like 40,79, got {args.ends!r}", file=sys.stderr)
-            return 2
+    try:
+        arm_frames, end_frames = _frames("--arms", args.arms), _frames("--ends", args.ends)
+        if arm_frames and not args.ground_truth_motion:
+            raise ValueError("--arms needs --ground-truth-motion")
+    except ValueError as e:
+        print(f"discrepancy_terms: error: {e}", file=sys.stderr)
+        return 2
     run = Path(args.run)
     if not (run / "checkpoint.pt").is_file():
         print(f"discrepancy_terms: error: {run} has no checkpoint.pt (a soma train run folder)", file=sys.stderr)
@@ -372,18 +371,14 @@ def main(argv=None) -> int:
                     _ratio(r["episodes"][episode].get(k), b.get(k), scale, unit)
                     for k, scale, unit in (("rmse", 1.0, "m"), ("chamfer", 1000.0, "mm"))), flush=True)
     rolls = HeldoutRollouts(ctx, models)  # shared by the diagnostics below
-    if arm_frames:
-        try:
+    try:
+        if arm_frames:
             print_arm_errors(ctx, models, Path(args.data), arm_frames, rolls)
-        except ValueError as e:  # a frame outside an episode
-            print(f"discrepancy_terms: error: {e}", file=sys.stderr)
-            return 2
-    if end_frames:
-        try:
+        if end_frames:
             print_arm_ends(ctx, models, Path(args.data), end_frames, rolls)
-        except ValueError as e:  # a frame outside an episode
-            print(f"discrepancy_terms: error: {e}", file=sys.stderr)
-            return 2
+    except ValueError as e:  # a frame outside an episode
+        print(f"discrepancy_terms: error: {e}", file=sys.stderr)
+        return 2
     if args.objective:
         try:
             objective = fit_objective(ctx, cfg, models)
