@@ -2,7 +2,7 @@
 
     python -m benchmarks.rope_static_hang [--world-config world/default] [--young 1e6] \
         [--mass-scales 1,10] [--holds 3,8,10,13] [--run RUN | --config tiny_physics_rod [--bend 30]] \
-        [--swing 1.5 [--swing-damping 0.01]]
+        [--swing 1.5 [--swing-damping 0.01]] [--carry-velocity on|off]
 
 Both start as the same straight, level rope (the world config's rope: length, segments, radius,
 mass; ``--young`` replaces its Young's modulus) with no table under it, held at three consecutive
@@ -21,8 +21,10 @@ vertices from ``--holds`` (the first index of each), and settle under gravity:
   flex's mass is multiplied.
 
 ``--swing SECONDS`` also releases both ropes from level and follows them that long, the world
-undamped (as it runs in the datasets), the prior with ``--swing-damping`` (default: its own): both
-arms' end heights every 3 frames and the long arm's swing period (its first two troughs).
+with only its flex's own damping (as it runs in the datasets), the prior with ``--swing-damping``
+(default: its own): both arms' end heights every 3 frames and the long arm's swing period (its
+first two troughs). ``--carry-velocity`` sets the prior's setting of that name (each step from
+its own end-of-step velocities; :class:`soma_ros.core.physics.PhysicsPrior.Params`).
 
 Printed per hold and mass scale: each arm's end (horizontal distance along the rope, height)
 relative to the hold, and the mean / largest distance between the world's vertices and the
