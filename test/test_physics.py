@@ -355,6 +355,26 @@ def test_a_free_rope_gains_all_of_gravity_per_step_only_from_the_end_velocity():
     assert 0.5 * exact < runs[False] < 0.65 * exact
 
 
+def test_stretch_per_mass_lets_a_heavier_rope_stretch_as_much_as_a_lighter_one():
+    """A stretchy rod (stretch compliance 1e-7, soft bending) hanging from its top: 10x heavier
+    (PhysicsMods.mass) it hangs about a third longer with the stretch compliance absolute, and about as
+    long as the lighter one with ``stretch_per_mass``; without a mass change the two are the same."""
+    lengths = {}
+    for per_mass in (False, True):
+        p = _rod_params(stretch_compliance=1e-7, bend_compliance=20.0, stretch_per_mass=per_mass)
+        pts, m = _chain()
+        lay = build_layout(pts, m, UP, torch.tensor(0.0), p)
+        for k in (0.0, 9.0):
+            x = _run(lay, p, lay.rest.clone(), 40, _top_grip(lay), True, PhysicsMods(mass=torch.tensor(k)))
+            lengths[(per_mass, k)] = float(x[:, 2].max() - x[:, 2].min())
+    assert lengths[(False, 0.0)] == pytest.approx(lengths[(True, 0.0)], abs=1e-6)
+    assert lengths[(False, 0.0)] > 0.31  # it stretches (0.29 m at rest)
+    grows = lengths[(False, 9.0)] - lengths[(False, 0.0)]
+    assert grows > 0.05 and abs(lengths[(True, 9.0)] - lengths[(True, 0.0)]) < 0.2 * grows
+    with pytest.raises(ConfigError, match="stretch_per_mass"):
+        PhysicsPrior(_rod_params(stretch_per_mass="yes"))
+
+
 def test_carry_velocity_lets_a_released_rope_fall_at_the_prior_s_gain_of_gravity():
     """In the simulator: a rope lifted clear of the table and let go falls 0.61x as far as free fall in
     8 steps with the prior starting each step from the splats' mean velocity, 0.84x with

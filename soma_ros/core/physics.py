@@ -399,6 +399,8 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
     if stiff is not None:
         alpha = alpha / stiff
     w_inv = 1.0 / (1.0 + mods.mass.clamp_min(-0.9)) if mods.mass is not None else x.new_ones(())  # per unit mass
+    if p.stretch_per_mass and mods.mass is not None:  # a heavier object stretches as much (mass-relative constraints)
+        alpha = torch.where(lay.bend, alpha, alpha * w_inv)
     a_grip = coef["grip"] / h2
     if grasp is not None and cp0 is None:
         raise ValueError("pbd_step: a grasp needs the control points")
@@ -686,6 +688,10 @@ class PhysicsPrior(Effect):
         # velocity, carried in the state), not from the mean velocity over the step, which gains only
         # half of gravity's velocity per step (pbd_step; docs/discrepancy.md, session 41)
         carry_velocity: bool = False
+        # the stretch compliance per unit node mass, as the bending's: a heavier object (PhysicsMods.mass)
+        # stretches as much as a lighter one, as the reference world's rope does (its edge constraints are
+        # soft in proportion to the mass they act on; sessions 40-41); False: a heavier one stretches more
+        stretch_per_mass: bool = False
 
     def __init__(self, params, *, attr_dim: int = 0) -> None:
         super().__init__(params, attr_dim=attr_dim)
@@ -713,8 +719,9 @@ class PhysicsPrior(Effect):
         if not p.grip_tilt_compliance >= 0.0 or (p.grip_tilt_compliance > 0.0 and p.solver != "newton"):
             raise ConfigError(f"effect physics: grip_tilt_compliance must be >= 0, and > 0 needs solver 'newton'; "
                               f"got {p.grip_tilt_compliance} with {p.solver!r}")
-        if not isinstance(p.carry_velocity, bool):
-            raise ConfigError(f"effect physics: carry_velocity must be true or false, got {p.carry_velocity!r}")
+        for name in ("carry_velocity", "stretch_per_mass"):
+            if not isinstance(getattr(p, name), bool):
+                raise ConfigError(f"effect physics: {name} must be true or false, got {getattr(p, name)!r}")
         if not 0.0 <= p.grasp_gather <= 1.0:
             raise ConfigError(f"effect physics: grasp_gather must be in [0, 1], got {p.grasp_gather}")
         if not 0.0 <= p.friction < 5.0 or p.contact_offset_max < 0:
