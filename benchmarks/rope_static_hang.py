@@ -223,6 +223,8 @@ def run_hangs(world_cfg: str, young: Optional[float], mass_scales: list[float], 
     (1/s; None: its own), both arms' end heights printed every 3 frames and each long arm's swing
     period (:func:`swing_period`) added to the row. ``carry_velocity``: the prior's setting of that
     name (None: the run's or config's)."""
+    import torch
+
     from soma_ros.world.config import load_world_config
 
     wc = load_world_config(world_cfg)
@@ -235,9 +237,9 @@ def run_hangs(world_cfg: str, young: Optional[float], mass_scales: list[float], 
     bad = [h for h in holds if not 0 <= h <= n - 3]
     if bad:
         raise ValueError(f"--holds: the first held vertex must be in 0..{n - 3} (three are held), got {bad}")
-    if run is None and bend is None and prior_from(None, config, None)[0].bend_model == "rod":
-        bend = rod_bend_compliance(obj)  # the world rope's own rho A / (4 E I)
     params, coef = prior_from(run, config, bend)
+    if run is None and bend is None and params.bend_model == "rod":
+        coef["bend"] = torch.tensor(rod_bend_compliance(obj), dtype=torch.float64)  # the world rope's own rho A / (4 E I)
     if carry_velocity is not None:
         params = replace(params, carry_velocity=bool(carry_velocity))
     out(f"rope {obj.length} m, {obj.segments} segments, radius {obj.radius} m, mass {obj.mass} kg, Young {obj.young:g} Pa; "
