@@ -258,10 +258,12 @@ def arm_ends(ctx, models: dict, data: Path, frames: list[int], rolls: Optional[H
 
         ends = {f: {"world": [rel(world[f][0], f), rel(world[f][-1], f)]} for f in frames}
         for name in models:
-            roll = [m.double().numpy() for m in rolls.means(name, ref.name)]
-            picks = [np.argsort(np.linalg.norm(roll[0] - world[0][i], axis=1))[:END_SPLATS] for i in (0, -1)]
+            roll = rolls.means(name, ref.name)
+            start = roll[0].double().numpy()
+            picks = [np.argsort(np.linalg.norm(start - world[0][i], axis=1))[:END_SPLATS] for i in (0, -1)]
             for f in frames:
-                ends[f][name] = [rel(roll[f][k].mean(0), f) for k in picks]
+                at = roll[f].double().numpy()
+                ends[f][name] = [rel(at[k].mean(0), f) for k in picks]
         out[ref.name] = {"held": held, "ends": ends}
     return out
 
