@@ -785,9 +785,10 @@ class PhysicsPrior(Effect):
             if float(ctx.gripper) < self.params.grip_threshold:  # closed: keep the grasp made when it closed
                 grasp = (ctx.state_in or {}).get(self.name) or grasp_nodes(lay, x, cp0, self.params)
         carry = self.params.carry_velocity
+        lag_key = self.name + ":lag"  # the state entry of the velocity lag (carry_velocity)
         v0 = v
         if carry:  # start from the end velocity of the prior's last step: v plus the lag it carried
-            lag = (ctx.state_in or {}).get(self.name + ":lag")
+            lag = (ctx.state_in or {}).get(lag_key)
             if lag is not None and tuple(lag.shape) == tuple(v.shape):
                 v0 = v + lag.to(v)
         out = pbd_step(lay, x, v0, ctx.gravity, ctx.plane_normal, ctx.plane_offset, float(ctx.dt), self.params,
@@ -796,7 +797,7 @@ class PhysicsPrior(Effect):
         if grasp is not None and ctx.state_out is not None:
             ctx.state_out[self.name] = grasp
         if carry and ctx.state_out is not None:  # the end velocity minus the mean one the splats will have
-            ctx.state_out[self.name + ":lag"] = (out[2] - (x1 - x) / float(ctx.dt)).detach()
+            ctx.state_out[lag_key] = (out[2] - (x1 - x) / float(ctx.dt)).detach()
         dv = (x1 - x) / float(ctx.dt) - v  # [K, 3] velocity change of every node
         acc = (lay.skin_w[..., None] * dv[lay.skin_idx]).sum(1) * (torch.sigmoid(self.gain_logit) / float(ctx.dt))
         return ctx.masses[:, None] * acc
