@@ -186,8 +186,13 @@ def test_player_plays_with_original_timing_scaled_by_rate(bag, ros_env, ros_cont
         assert list(msg.name) == PANDA_JOINTS
         assert np.allclose(msg.position, js_position(k)), (k, list(msg.position))
         assert len(msg.velocity) == 9 and len(msg.effort) == 0
-    # The sensor-QoS (best effort) subscriber of the simulator's kind hears the same stream.
-    assert [list(m.position) for _, m in listener.got["js_sensor"]] == [list(m.position) for _, m in js]
+    # The sensor-QoS (best effort) subscriber of the simulator's kind hears the same stream, in order;
+    # best effort may drop a sample (seen once: the first, on a loaded machine), so up to 2 may be missing.
+    reliable = [list(m.position) for _, m in js]
+    sensor = [list(m.position) for _, m in listener.got["js_sensor"]]
+    it = iter(reliable)
+    assert all(p in it for p in sensor), "the best-effort stream is not the reliable one's, in order"
+    assert len(sensor) >= JS_N - 2, f"best-effort subscriber heard {len(sensor)} of {JS_N}"
 
     imgs = listener.got["img"]
     assert len(imgs) == IMG_N
