@@ -121,28 +121,34 @@ def rollout_heights(ctx, models: dict, rolls: Optional[HeldoutRollouts] = None) 
     return out
 
 
-def fit_objective(ctx, cfg, models: dict) -> dict[str, tuple[float, float]]:
+def fit_objective(ctx, cfg, models: dict) -> dict[str, tuple[float, float, Optional[float], Optional[float]]]:
     """{model: (3D residual sum over the fit episodes' scored frames, the same over the held-out
-    ones)}, the workflow's fit objective (``trainer.discrepancy.residual_per_frame``), for every
+    ones, |wrist load error| sum (N) over the fit episodes' scored frames, the same held out)}: the
+    workflow's fit objective (``trainer.discrepancy.scores_per_frame``) and the load channel its
+    ranking also scores (None where an episode has no ``/joint_states`` efforts), for every
     :class:`~trainer.baselines.SimulatorModel` in ``models`` (others, e.g. the ground truth's
     motion, are skipped)."""
     import torch
 
     from trainer.baselines import SimulatorModel
-    from trainer.discrepancy import HELDOUT, episode_obs, residual_per_frame
+    from trainer.discrepancy import HELDOUT, episode_obs, scores_per_frame
 
     obs = [(ref.split == HELDOUT, episode_obs(ctx, ref, cfg)[0]) for ref in ctx.refs]
     if not any(h for h, _ in obs) or all(h for h, _ in obs):
         raise ValueError("the data needs both fit and held-out episodes for --objective")
-    out: dict[str, tuple[float, float]] = {}
+    with_load = all(ob.load is not None for _, ob in obs)
+    out: dict[str, tuple[float, float, Optional[float], Optional[float]]] = {}
     for name, model in models.items():
         if not isinstance(model, SimulatorModel):
             continue
-        sums = [0.0, 0.0]
+        sums = [0.0, 0.0, 0.0, 0.0]
         with torch.no_grad():
             for held, ob in obs:
-                sums[int(held)] += float(residual_per_frame(model.sim, ob, ctx.scene).sum())
-        out[name] = (sums[0], sums[1])
+                res, load = scores_per_frame(model.sim, ob, ctx.scene)
+                sums[int(held)] += float(res.sum())
+                if with_load:
+                    sums[2 + int(held)] += float(load.sum())
+        out[name] = (sums[0], sums[1], sums[2] if with_load else None, sums[3] if with_load else None)
     return out
 
 
@@ -387,9 +393,11 @@ def main(argv=None) -> int:
         except ValueError as e:  # data without fit episodes
             print(f"discrepancy_terms: error: {e}", file=sys.stderr)
             return 2
-        print("the workflow's fit objective (3D residual summed over the scored frames; lower is better):")
-        for name, (fit_sum, held_sum) in objective.items():
-            print(f"  {name:>16s}: fit episodes {fit_sum:.4f}, held-out episodes {held_sum:.4f}", flush=True)
+        print("the workflow's fit objective (3D residual summed over the scored frames, m; lower is better)"
+              " and the |wrist load error| summed over the same frames, N (where the episodes have efforts):")
+        for name, (fit_sum, held_sum, fit_load, held_load) in objective.items():
+            load = "" if fit_load is None else f"; wrist load fit {fit_load:.3f} N, held-out {held_load:.3f} N"
+            print(f"  {name:>16s}: fit episodes {fit_sum:.4f}, held-out episodes {held_sum:.4f}{load}", flush=True)
     if args.heights > 0:
         heights = rollout_heights(ctx, models, rolls)
         print(f"rise of the highest splat above frame 0, cm, every {args.heights} frames:")

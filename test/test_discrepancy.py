@@ -681,12 +681,17 @@ def test_terms_cli_scores_hand_set_terms_on_the_heldout_episodes(clean_run, tmp_
     assert len(rows) == 2 * 4  # 2 held-out episodes x 4 models, every 5th frame
     assert all(ln.split(":")[1].split()[0] == "0" for ln in rows)  # frame 0: no rise
     # the fit objective (3D residual sums, fit / held-out episodes): not for the ground truth's motion;
-    # a term at zero leaves it exactly, the gale raises it on both
-    obj = {ln.split(":")[0].strip(): [float(x.split()[-1]) for x in ln.split(":")[1].split(",")]
-           for ln in printed.splitlines() if ": fit episodes" in ln}
-    assert set(obj) == {"unchanged", "zero", "gale"}
+    # a term at zero leaves it exactly, the gale raises it on both. The wrist load error sums (the
+    # episodes have efforts): the zero term leaves them exactly too
+    lines = [ln for ln in printed.splitlines() if ": fit episodes" in ln]
+    obj = {ln.split(":")[0].strip(): [float(x.split()[-1]) for x in ln.split(":")[1].split(";")[0].split(",")]
+           for ln in lines}
+    load = {ln.split(":")[0].strip(): [float(x.split()[-2]) for x in ln.split("; wrist load")[1].split(",")]
+            for ln in lines}
+    assert set(obj) == set(load) == {"unchanged", "zero", "gale"}
     assert obj["zero"] == obj["unchanged"] and all(v > 0 for v in obj["unchanged"])
     assert obj["gale"][0] > obj["unchanged"][0] and obj["gale"][1] > obj["unchanged"][1]
+    assert load["zero"] == load["unchanged"] and all(v > 0 for v in load["unchanged"])
     assert main(args + ["--variants", json.dumps(variants), "--arms", "0,6"]) == 2  # without the ground truth's motion
     assert main(args + ["--variants", json.dumps(variants), "--ground-truth-motion", "--arms", "0,999"]) == 2
     assert main(args + ["--variants", json.dumps(variants), "--ground-truth-motion", "--arms", "first,last"]) == 2
@@ -863,6 +868,48 @@ def test_fits_stay_inside_the_terms_physical_range():
     assert 2.0 < values["excess"][0] < 4.0, values
     wind = build_effect({"name": "wind", "accel": [0.0, 0.0, -400.0]})
     assert wind.project_() == [] and wind.accel.tolist() == [0.0, 0.0, -400.0]
+
+
+def test_the_fit_weighs_the_wrist_load_as_the_ranking_does():
+    """A falling rope held by a closed gripper whose points say mass x4 (excess 3) while the wrist feels
+    x2 (excess 1): fitted on the 3D residual alone the mass term goes near excess 3; with the wrist load
+    in the fit (``load_in_fit``, each channel relative to the start, excess 0) it stays near 1, where the
+    load's relative error falls three times as fast per unit as the points' (both are linear in the
+    excess here), and its result has the lower value of the two-channel objective. Without efforts the
+    load has no weight."""
+    import copy
+
+    from trainer.discrepancy import FitObjective, _rollout, fit_effect, fit_objective, load_tensor, predicted_load
+
+    sim, world, ob, scene = _falling_rope(3.0)
+    ob.gripper = torch.zeros_like(ob.gripper)  # closed: the rope's weight is on the wrist
+    wrist = copy.deepcopy(sim)
+    wrist.add_effect({"name": "mass_scale", "direct": True, "excess": 1.0})
+    with torch.no_grad():
+        ob.load = np.array([predicted_load(wrist, ob.init.mass, st.means, 0.0, scene)
+                            for _, st in _rollout(wrist, ob, scene, ob.frames)])
+    # the load is differentiable in the mass term: d load / d excess = the lifted weight
+    probe = copy.deepcopy(wrist)
+    excess = probe.effects["mass_scale"].excess
+    excess.requires_grad_(True)
+    load = load_tensor(probe, ob.init.mass, ob.init.means, 0.0, scene)
+    load.backward()
+    assert float(excess.grad) == pytest.approx(float(load.detach()) / 2.0, rel=1e-5)
+    off = load_discrepancy_config("fast", {"fit_iters": 6, "fit_lr": 0.1, "grid_start": [1, 2, 3, 4],
+                                           "load_in_fit": False})
+    on = dataclasses.replace(off, load_in_fit=True)
+    assert fit_objective(sim, [ob], scene, off)[0] == FitObjective()
+    both, start = fit_objective(sim, [ob], scene, on)
+    assert both.load_weight > 0 and start == pytest.approx(2 * float(fit_objective(sim, [ob], scene, off)[1]))
+    no_efforts = dataclasses.replace(ob, load=None)
+    assert fit_objective(sim, [no_efforts], scene, on)[0] == FitObjective()
+    fitted = {}
+    for key, objective in (("3d", FitObjective()), ("both", both)):
+        model, _, values = fit_effect(sim, "mass_scale", [ob], scene, off, 6, log=lambda *a: None, objective=objective)
+        fitted[key] = (values["excess"][0], both.total(model, [ob], scene))
+    assert 2.5 < fitted["3d"][0] < 3.5, fitted
+    assert 0.5 < fitted["both"][0] < 1.5, fitted
+    assert fitted["both"][1] < fitted["3d"][1], fitted
 
 
 def test_the_line_search_continues_past_its_smallest_scale_only_when_asked():

@@ -163,6 +163,8 @@ class DiscrepancyConfig:
     # the results do not depend on it
     load_channel: bool = True  # where every measured and reference episode has /joint_states efforts: rank the
     # candidates by the held-out 3D residual's explained fraction plus that of the wrist load (rank_candidates)
+    load_in_fit: bool = True  # ... and fit them on both as well (FitObjective): the fit minimises what the
+    # ranking scores, each channel relative to the fit's start; where an episode has no efforts, the 3D residual alone
 
     def validate(self) -> "DiscrepancyConfig":
         unknown = [c for c in self.candidates if c not in EFFECTS]
@@ -341,14 +343,22 @@ def _rollout(sim: Simulator, ob: EpisodeObs, scene: SceneContext, keep: Sequence
 
 def predicted_load(sim: Simulator, mass: torch.Tensor, means: torch.Tensor, gripper: float,
                    scene: SceneContext) -> float:
-    """The vertical load (N) that a simulated state puts on a closed gripper, quasi-statically: the
+    """:func:`load_tensor` as a float (N)."""
+    return float(load_tensor(sim, mass, means, gripper, scene).detach())
+
+
+def load_tensor(sim: Simulator, mass: torch.Tensor, means: torch.Tensor, gripper: float,
+                scene: SceneContext) -> torch.Tensor:
+    """[] The vertical load (N) that a simulated state puts on a closed gripper, quasi-statically: the
     weight of the object's part off the table (each splat's mass [N] times the mass term's band of
     height above the table, 0 below 2 cm, 1 above 5 cm, at ``means`` [N, 3]) times the model's
     :meth:`~soma_ros.core.effects.EffectSet.weight_factor`; 0 with the gripper open (``gripper`` c
     > 0.5). Inertia and the table's share of a rope's tension near it are left out: the same for
-    every candidate, so the comparison of candidates does not hinge on them."""
+    every candidate, so the comparison of candidates does not hinge on them. Differentiable in ``means``
+    and in the mass term's parameter."""
+    assert mass.shape == means.shape[:1] and means.shape[-1] == 3, (mass.shape, means.shape)
     if float(gripper) > 0.5:
-        return 0.0
+        return means.new_zeros(())
     from soma_ros.core.effects import smoothstep
     from soma_ros.core.effects_library import MassScale
 
@@ -357,7 +367,7 @@ def predicted_load(sim: Simulator, mass: torch.Tensor, means: torch.Tensor, grip
     h = means @ n + float(scene.plane_offset)
     lifted = smoothstep((h - band.d0) / (band.d1 - band.d0))
     g = float(scene.gravity.norm())
-    return g * sim.effects.weight_factor() * float((mass.to(means) * lifted).sum())
+    return g * sim.effects.weight_factor(as_tensor=True) * (mass.to(means) * lifted).sum()
 
 
 @torch.no_grad()
@@ -382,6 +392,45 @@ def scores_per_frame(sim: Simulator, ob: EpisodeObs, scene: SceneContext) -> tup
 def residual_per_frame(sim: Simulator, ob: EpisodeObs, scene: SceneContext) -> np.ndarray:
     """[F] 3D residual (m) of each scored frame of an episode (:func:`scores_per_frame`)."""
     return scores_per_frame(sim, dataclasses.replace(ob, load=None), scene)[0]
+
+
+@dataclass(frozen=True)
+class FitObjective:
+    """What a candidate's fit minimises per scored frame: the 3D residual (m) plus ``load_weight`` (m/N)
+    times the |wrist load error| (N). With ``load_weight`` = the fit start's 3D residual sum over its
+    wrist load error sum on the fit's episodes (:func:`fit_objective`), the objective is, up to that
+    constant, the sum of both channels relative to the start, the quantity the ranking scores held out
+    (the explained fractions' sum; :func:`decide`). 0: the 3D residual alone."""
+
+    load_weight: float = 0.0
+
+    def per_frame(self, sim: Simulator, ob: EpisodeObs, scene: SceneContext) -> np.ndarray:
+        """[F] the objective of each scored frame of an episode (+inf where the rollout diverges)."""
+        if not self.load_weight:
+            return residual_per_frame(sim, ob, scene)
+        res, load = scores_per_frame(sim, ob, scene)
+        return res + self.load_weight * load
+
+    def total(self, sim: Simulator, obs: Sequence[EpisodeObs], scene: SceneContext) -> float:
+        return float(sum(self.per_frame(sim, o, scene).sum() for o in obs))
+
+
+def fit_objective(sim: Simulator, obs: Sequence[EpisodeObs], scene: SceneContext, cfg: "DiscrepancyConfig",
+                  residual_sum: Optional[float] = None) -> tuple[FitObjective, float]:
+    """(the :class:`FitObjective` of a fit that starts at ``sim`` on ``obs``, its value there). With
+    ``cfg.load_in_fit`` and efforts in every episode, the wrist load error counts at the start's ratio
+    of the two sums (its value there is then twice the 3D residual sum); else the 3D residual alone,
+    whose sum ``residual_sum`` is taken as given when the caller has it (no rollout)."""
+    if cfg.load_in_fit and obs and all(o.load is not None for o in obs):
+        scores = [scores_per_frame(sim, o, scene) for o in obs]
+        res = float(sum(r.sum() for r, _ in scores))
+        load = float(sum(ld.sum() for _, ld in scores))
+        if math.isfinite(res) and math.isfinite(load) and res > 0 and load > 0:
+            return FitObjective(res / load), 2.0 * res
+        return FitObjective(), res
+    if residual_sum is None:
+        residual_sum = float(sum(residual_per_frame(sim, o, scene).sum() for o in obs))
+    return FitObjective(), residual_sum
 
 
 # --------------------------------------------------------------------------- statistics
@@ -591,10 +640,12 @@ def _finite_grads(params: Sequence[torch.Tensor]) -> bool:
 
 def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: SceneContext,
                cfg: DiscrepancyConfig, iters: int, log: Callable[[str], None] = print,
-               key: Optional[str] = None) -> tuple[Simulator, list[float], dict]:
+               key: Optional[str] = None, objective: FitObjective = FitObjective()
+               ) -> tuple[Simulator, list[float], dict]:
     """A copy of ``sim`` with effect ``name`` added (unless ``key`` names one already there) and
-    only that effect's parameters fitted by Adam on the 3D point residual of ``fit_obs`` (one
-    episode per step). The result is the mean of the iterates over the second half of the
+    only that effect's parameters fitted by Adam on ``objective`` over ``fit_obs`` (the 3D point
+    residual, plus the wrist load error where it has a weight; one episode per step). The result
+    is the mean of the iterates over the second half of the
     steps (Polyak-Ruppert averaging): single-episode gradients are noisy, and the last iterate
     of a sign-normalised optimiser wanders by about a step size per step around the optimum.
     Returns (model, per-step losses, fitted parameter values)."""
@@ -611,7 +662,7 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
     model.eval()
     losses: list[float] = []
     if params and iters > 0 and fit_obs and cfg.grid_start:
-        _grid_start(model, key, fit_obs, scene, cfg, log)
+        _grid_start(model, key, fit_obs, scene, cfg, log, objective)
     if params and iters > 0 and fit_obs:
         scale = getattr(model.effects[key], "fit_scale", {}) or {}
         groups = [{"params": [p], "lr": cfg.fit_lr * float(scale.get(n, 1.0))} for n, p in named]
@@ -633,9 +684,15 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
                 order = list(rng.permutation(len(fit_obs)))
             ob = fit_obs[order.pop()]
             opt.zero_grad()
+            weigh_load = bool(objective.load_weight) and ob.load is not None
             try:
-                terms = [point_residual(ob.points[i], st.means)[0]
-                         for i, (t, st) in enumerate(_rollout(model, ob, scene, ob.frames))]
+                terms = []
+                for i, (t, st) in enumerate(_rollout(model, ob, scene, ob.frames)):
+                    term = point_residual(ob.points[i], st.means)[0]
+                    if weigh_load:
+                        pred = load_tensor(model, ob.init.mass, st.means, float(ob.gripper[t]), scene)
+                        term = term + objective.load_weight * (pred - float(ob.load[i])).abs()
+                    terms.append(term)
             except SimulationDiverged:  # this value is unstable on this episode: no gradient to follow
                 losses.append(math.inf)
                 continue
@@ -666,17 +723,17 @@ def fit_effect(sim: Simulator, name: str, fit_obs: Sequence[EpisodeObs], scene: 
 
 @torch.no_grad()
 def _grid_start(model: Simulator, key: str, fit_obs: Sequence[EpisodeObs], scene: SceneContext,
-                cfg: DiscrepancyConfig, log: Callable[[str], None]) -> None:
+                cfg: DiscrepancyConfig, log: Callable[[str], None], objective: FitObjective = FitObjective()) -> None:
     """Move effect ``key``'s acting parameters to the best start on a coarse grid
     (``cfg.grid_start``: multiples of each parameter's ``Effect.fit_scale`` added to its value, clamped
-    to its bounds; the current values always count), scored by the 3D residual sum on
+    to its bounds; the current values always count), scored by ``objective``'s sum on
     ``cfg.grid_episodes`` evenly spaced fit episodes. Every combination when the effect has at most
     ``cfg.grid_joint`` acting elements, else greedy, one element after another. Then, with
     ``cfg.grid_refine`` = k, every element the grid moved also tries its start plus 1/2, 1/4, ... 1/2^k
     of that move, one element at a time."""
     n = min(len(fit_obs), max(1, cfg.grid_episodes))
     sub = [fit_obs[int(i)] for i in np.round(np.linspace(0, len(fit_obs) - 1, n)).astype(int)]
-    score = lambda: float(sum(residual_per_frame(model, o, scene).sum() for o in sub))  # noqa: E731
+    score = lambda: objective.total(model, sub, scene)  # noqa: E731
     best = score()
     scale = getattr(model.effects[key], "fit_scale", {}) or {}
     named = model.acting_parameters(key)
@@ -726,13 +783,14 @@ def _grid_start(model: Simulator, key: str, fit_obs: Sequence[EpisodeObs], scene
 
 
 def _line_search(model: Simulator, name: str, theta0: list[torch.Tensor], obs: Sequence[EpisodeObs],
-                 scene: SceneContext, scales: Sequence[float], base: float, extend: int = 0) -> tuple[float, float]:
+                 scene: SceneContext, scales: Sequence[float], base: float, extend: int = 0,
+                 objective: FitObjective = FitObjective()) -> tuple[float, float]:
     """Set effect ``name``'s parameters to theta0 + a (theta - theta0), theta their fitted values,
-    with the scale a in {0} + ``scales`` of the lowest residual sum on ``obs`` (``base``: at
+    with the scale a in {0} + ``scales`` of the lowest ``objective`` sum on ``obs`` (``base``: at
     a = 0). A fit that does not lower it is undone (a = 0); an over- or undershoot of the
     stochastic fit is corrected. When the best is the smallest or the largest of ``scales``, up to
     ``extend`` more scales beyond it (that end's ratio) are tried while each lowers the sum.
-    Returns (a, residual sum)."""
+    Returns (a, objective sum)."""
     params = [p for _, p in model.acting_parameters(name)]
     theta = [p.detach().clone() for p in params]
 
@@ -741,7 +799,7 @@ def _line_search(model: Simulator, name: str, theta0: list[torch.Tensor], obs: S
             for p, t, t0 in zip(params, theta, theta0):
                 p.copy_(t0 + a * (t - t0))
         model.effects[name].project_()  # an overshoot (a > 1) stays inside the physical range
-        return float(sum(residual_per_frame(model, o, scene).sum() for o in obs))
+        return objective.total(model, obs, scene)
 
     best_a, best = 0.0, base
     for a in scales:
@@ -809,35 +867,39 @@ def fit_candidate(w: _CandidateWork, name: str, log: Callable[[str], None]) -> O
         return None
     del probe
     if ref_obs:  # calibration on the model's own conditions
-        calib, _, _ = fit_effect(sim, name, ref_obs, ref_scene, cfg, cfg.fit_iters, log)
+        ref_objective, ref_start = fit_objective(sim, ref_obs, ref_scene, cfg, w.ref_base)
+        calib, _, _ = fit_effect(sim, name, ref_obs, ref_scene, cfg, cfg.fit_iters, log, objective=ref_objective)
         zero = [torch.zeros_like(p) for _, p in calib.acting_parameters(name)]
-        a, r = _line_search(calib, name, zero, ref_obs, ref_scene, cfg.line_search, w.ref_base,
-                            cfg.line_search_extend)
-        rec.update(reference_parameters=_values(calib, name), reference_explained=1.0 - r / max(w.ref_base, 1e-12),
+        a, r = _line_search(calib, name, zero, ref_obs, ref_scene, cfg.line_search, ref_start,
+                            cfg.line_search_extend, ref_objective)
+        rec.update(reference_parameters=_values(calib, name), reference_explained=1.0 - r / max(ref_start, 1e-12),
                    reference_scale=a)
         calib_held = [scores_per_frame(calib, o, scene) for o in held_obs]
         bases = [[r for r, _ in calib_held], list(w.base)]
         load_bases = [[ld for _, ld in calib_held], list(w.base_load or [])]
-        fit_start = float(sum(residual_per_frame(calib, o, scene).sum() for o in fit_obs))
-        model, losses, _ = fit_effect(calib, name, fit_obs, scene, cfg, cfg.fit_iters, log, key=name)
+        objective, fit_start = fit_objective(calib, fit_obs, scene, cfg)
+        model, losses, _ = fit_effect(calib, name, fit_obs, scene, cfg, cfg.fit_iters, log, key=name,
+                                      objective=objective)
         theta0 = [p.detach().clone() for _, p in calib.acting_parameters(name)]
         # the same budget on the reference: the re-fit continues an optimisation the calibration
         # may not have finished, and what more steps on *any* data would find is not new
-        cont, _, _ = fit_effect(calib, name, ref_obs, ref_scene, cfg, cfg.fit_iters, log, key=name)
+        cont, _, _ = fit_effect(calib, name, ref_obs, ref_scene, cfg, cfg.fit_iters, log, key=name,
+                                objective=ref_objective)
         _line_search(cont, name, theta0, ref_obs, ref_scene, cfg.line_search, r,  # as the re-fit's
-                     cfg.line_search_extend)
+                     cfg.line_search_extend, ref_objective)
         cont_held = [scores_per_frame(cont, o, scene) for o in held_obs]
         bases.append([r for r, _ in cont_held])
         load_bases.append([ld for _, ld in cont_held])
         rec.update(reference_continued_parameters=_values(cont, name))
     else:
-        model, losses, _ = fit_effect(sim, name, fit_obs, scene, cfg, cfg.fit_iters, log)
+        objective, fit_start = fit_objective(sim, fit_obs, scene, cfg, w.fit_base)
+        model, losses, _ = fit_effect(sim, name, fit_obs, scene, cfg, cfg.fit_iters, log, objective=objective)
         bases = [list(w.base)]
         load_bases = [list(w.base_load or [])]
-        fit_start = w.fit_base
         theta0 = [torch.zeros_like(p) for _, p in model.acting_parameters(name)]
     best_a, fit_with = _line_search(model, name, theta0, fit_obs, scene, cfg.line_search, fit_start,
-                                    cfg.line_search_extend)
+                                    cfg.line_search_extend, objective)
+    rec["fit_load_weight"] = objective.load_weight
     values = _values(model, name)
     held_scores = [scores_per_frame(model, o, scene) for o in held_obs]
     res = [r for r, _ in held_scores]
@@ -1150,7 +1212,8 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
     if named != "none":
         after = models[named]
         if cfg.finetune_iters > 0:
-            after, _, values = fit_effect(after, named, fit_obs, scene, cfg, cfg.finetune_iters, log, key=named)
+            after, _, values = fit_effect(after, named, fit_obs, scene, cfg, cfg.finetune_iters, log, key=named,
+                                          objective=fit_objective(after, fit_obs, scene, cfg)[0])
             fits[named]["parameters_finetuned"] = values
     model_dir = out / "model"
     model_dir.mkdir(parents=True, exist_ok=True)

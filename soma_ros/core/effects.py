@@ -235,10 +235,11 @@ class Effect(nn.Module):
         or None for a term the robot does not drive."""
         return None
 
-    def weight_factor(self) -> float:
+    def weight_factor(self) -> "float | torch.Tensor":
         """How many times its identified weight the object has with this term (1: unchanged). A
         force sensor at the wrist feels it; only a term that changes the object's mass says
-        otherwise (:class:`~.effects_library.MassScale`)."""
+        otherwise (:class:`~.effects_library.MassScale`, as a 0-dim tensor differentiable in its
+        parameter)."""
         return 1.0
 
     #: parameters that act only through a physics prior, and those that act only as the term's own
@@ -331,12 +332,14 @@ class EffectSet(nn.Module):
         """Key of the physics prior (an effect with ``hosts_modifiers``), or None."""
         return next((k for k, e in self.terms.items() if e.hosts_modifiers), None)
 
-    def weight_factor(self) -> float:
-        """The product of the terms' :meth:`Effect.weight_factor`: the object's weight over its identified one."""
+    def weight_factor(self, as_tensor: bool = False) -> "float | torch.Tensor":
+        """The product of the terms' :meth:`Effect.weight_factor`: the object's weight over its identified
+        one; with ``as_tensor`` as the terms give it (a 0-dim tensor differentiable in their parameters
+        where one is, else the float 1.0)."""
         f = 1.0
         for e in self.terms.values():
-            f *= float(e.weight_factor())
-        return f
+            f = f * e.weight_factor()
+        return f if as_tensor else float(f.detach() if isinstance(f, torch.Tensor) else f)
 
     def robot_reach(self) -> Optional[float]:
         """The largest reach of the terms the robot drives (``Effect.robot_reach``), or None."""

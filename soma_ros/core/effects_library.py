@@ -174,9 +174,9 @@ class MassScale(Effect):
         s = smoothstep((ctx.signed_distance() - self.params.d0) / (self.params.d1 - self.params.d0))
         return (self.excess * ctx.masses * s)[:, None] * ctx.gravity.to(ctx.positions.dtype)[None, :]
 
-    def weight_factor(self) -> float:
+    def weight_factor(self) -> torch.Tensor:
         lo, hi = self.bounds["excess"]
-        return 1.0 + min(max(float(self.excess.detach()), lo), hi)
+        return 1.0 + self.excess.clamp(lo, hi)
 
     def physics_modifier(self, ctx: EffectContext):
         from .physics import PhysicsMods
