@@ -879,7 +879,7 @@ def test_the_fit_weighs_the_wrist_load_as_the_ranking_does():
     load has no weight."""
     import copy
 
-    from trainer.discrepancy import FitObjective, _rollout, fit_effect, fit_objective, load_tensor, predicted_load
+    from trainer.discrepancy import FitObjective, _rollout, fit_effect, objective_at_start, load_tensor, predicted_load
 
     sim, world, ob, scene = _falling_rope(3.0)
     ob.gripper = torch.zeros_like(ob.gripper)  # closed: the rope's weight is on the wrist
@@ -898,11 +898,11 @@ def test_the_fit_weighs_the_wrist_load_as_the_ranking_does():
     off = load_discrepancy_config("fast", {"fit_iters": 6, "fit_lr": 0.1, "grid_start": [1, 2, 3, 4],
                                            "load_in_fit": False})
     on = dataclasses.replace(off, load_in_fit=True)
-    assert fit_objective(sim, [ob], scene, off)[0] == FitObjective()
-    both, start = fit_objective(sim, [ob], scene, on)
-    assert both.load_weight > 0 and start == pytest.approx(2 * float(fit_objective(sim, [ob], scene, off)[1]))
+    assert objective_at_start(sim, [ob], scene, off)[0] == FitObjective()
+    both, start = objective_at_start(sim, [ob], scene, on)
+    assert both.load_weight > 0 and start == pytest.approx(2 * float(objective_at_start(sim, [ob], scene, off)[1]))
     no_efforts = dataclasses.replace(ob, load=None)
-    assert fit_objective(sim, [no_efforts], scene, on)[0] == FitObjective()
+    assert objective_at_start(sim, [no_efforts], scene, on)[0] == FitObjective()
     fitted = {}
     for key, objective in (("3d", FitObjective()), ("both", both)):
         model, _, values = fit_effect(sim, "mass_scale", [ob], scene, off, 6, log=lambda *a: None, objective=objective)

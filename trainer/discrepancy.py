@@ -398,7 +398,7 @@ def residual_per_frame(sim: Simulator, ob: EpisodeObs, scene: SceneContext) -> n
 class FitObjective:
     """What a candidate's fit minimises per scored frame: the 3D residual (m) plus ``load_weight`` (m/N)
     times the |wrist load error| (N). With ``load_weight`` = the fit start's 3D residual sum over its
-    wrist load error sum on the fit's episodes (:func:`fit_objective`), the objective is, up to that
+    wrist load error sum on the fit's episodes (:func:`objective_at_start`), the objective is, up to that
     constant, the sum of both channels relative to the start, the quantity the ranking scores held out
     (the explained fractions' sum; :func:`decide`). 0: the 3D residual alone."""
 
@@ -415,8 +415,8 @@ class FitObjective:
         return float(sum(self.per_frame(sim, o, scene).sum() for o in obs))
 
 
-def fit_objective(sim: Simulator, obs: Sequence[EpisodeObs], scene: SceneContext, cfg: "DiscrepancyConfig",
-                  residual_sum: Optional[float] = None) -> tuple[FitObjective, float]:
+def objective_at_start(sim: Simulator, obs: Sequence[EpisodeObs], scene: SceneContext, cfg: "DiscrepancyConfig",
+                       residual_sum: Optional[float] = None) -> tuple[FitObjective, float]:
     """(the :class:`FitObjective` of a fit that starts at ``sim`` on ``obs``, its value there). With
     ``cfg.load_in_fit`` and efforts in every episode, the wrist load error counts at the start's ratio
     of the two sums (its value there is then twice the 3D residual sum); else the 3D residual alone,
@@ -867,7 +867,7 @@ def fit_candidate(w: _CandidateWork, name: str, log: Callable[[str], None]) -> O
         return None
     del probe
     if ref_obs:  # calibration on the model's own conditions
-        ref_objective, ref_start = fit_objective(sim, ref_obs, ref_scene, cfg, w.ref_base)
+        ref_objective, ref_start = objective_at_start(sim, ref_obs, ref_scene, cfg, w.ref_base)
         calib, _, _ = fit_effect(sim, name, ref_obs, ref_scene, cfg, cfg.fit_iters, log, objective=ref_objective)
         zero = [torch.zeros_like(p) for _, p in calib.acting_parameters(name)]
         a, r = _line_search(calib, name, zero, ref_obs, ref_scene, cfg.line_search, ref_start,
@@ -877,7 +877,7 @@ def fit_candidate(w: _CandidateWork, name: str, log: Callable[[str], None]) -> O
         calib_held = [scores_per_frame(calib, o, scene) for o in held_obs]
         bases = [[r for r, _ in calib_held], list(w.base)]
         load_bases = [[ld for _, ld in calib_held], list(w.base_load or [])]
-        objective, fit_start = fit_objective(calib, fit_obs, scene, cfg)
+        objective, fit_start = objective_at_start(calib, fit_obs, scene, cfg)
         model, losses, _ = fit_effect(calib, name, fit_obs, scene, cfg, cfg.fit_iters, log, key=name,
                                       objective=objective)
         theta0 = [p.detach().clone() for _, p in calib.acting_parameters(name)]
@@ -892,7 +892,7 @@ def fit_candidate(w: _CandidateWork, name: str, log: Callable[[str], None]) -> O
         load_bases.append([ld for _, ld in cont_held])
         rec.update(reference_continued_parameters=_values(cont, name))
     else:
-        objective, fit_start = fit_objective(sim, fit_obs, scene, cfg, w.fit_base)
+        objective, fit_start = objective_at_start(sim, fit_obs, scene, cfg, w.fit_base)
         model, losses, _ = fit_effect(sim, name, fit_obs, scene, cfg, cfg.fit_iters, log, objective=objective)
         bases = [list(w.base)]
         load_bases = [list(w.base_load or [])]
@@ -1213,7 +1213,7 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
         after = models[named]
         if cfg.finetune_iters > 0:
             after, _, values = fit_effect(after, named, fit_obs, scene, cfg, cfg.finetune_iters, log, key=named,
-                                          objective=fit_objective(after, fit_obs, scene, cfg)[0])
+                                          objective=objective_at_start(after, fit_obs, scene, cfg)[0])
             fits[named]["parameters_finetuned"] = values
     model_dir = out / "model"
     model_dir.mkdir(parents=True, exist_ok=True)
