@@ -405,8 +405,9 @@ class FitObjective:
     load_weight: float = 0.0
 
     def per_frame(self, sim: Simulator, ob: EpisodeObs, scene: SceneContext) -> np.ndarray:
-        """[F] the objective of each scored frame of an episode (+inf where the rollout diverges)."""
-        if not self.load_weight:
+        """[F] the objective of each scored frame of an episode (+inf where the rollout diverges); the 3D
+        residual alone on an episode without efforts, as :func:`fit_effect`'s steps."""
+        if not self.load_weight or ob.load is None:
             return residual_per_frame(sim, ob, scene)
         res, load = scores_per_frame(sim, ob, scene)
         return res + self.load_weight * load
