@@ -831,8 +831,7 @@ class _CandidateWork:
     cfg: "DiscrepancyConfig"
     ref_obs: list
     ref_scene: SceneContext
-    fit_base: float
-    ref_base: float
+    start: tuple  # (FitObjective, its value) of the unchanged model on ref_obs (on fit_obs without a reference)
     den0: float
     base_load: Optional[list] = None  # per held-out episode [F] |load error| of the unchanged model (N), or None
 
@@ -868,7 +867,7 @@ def fit_candidate(w: _CandidateWork, name: str, log: Callable[[str], None]) -> O
         return None
     del probe
     if ref_obs:  # calibration on the model's own conditions
-        ref_objective, ref_start = objective_at_start(sim, ref_obs, ref_scene, cfg, w.ref_base)
+        ref_objective, ref_start = w.start
         calib, _, _ = fit_effect(sim, name, ref_obs, ref_scene, cfg, cfg.fit_iters, log, objective=ref_objective)
         zero = [torch.zeros_like(p) for _, p in calib.acting_parameters(name)]
         a, r = _line_search(calib, name, zero, ref_obs, ref_scene, cfg.line_search, ref_start,
@@ -893,7 +892,7 @@ def fit_candidate(w: _CandidateWork, name: str, log: Callable[[str], None]) -> O
         load_bases.append([ld for _, ld in cont_held])
         rec.update(reference_continued_parameters=_values(cont, name))
     else:
-        objective, fit_start = objective_at_start(sim, fit_obs, scene, cfg, w.fit_base)
+        objective, fit_start = w.start
         model, losses, _ = fit_effect(sim, name, fit_obs, scene, cfg, cfg.fit_iters, log, objective=objective)
         bases = [list(w.base)]
         load_bases = [list(w.base_load or [])]
@@ -1004,8 +1003,8 @@ def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Seq
         fit_res = [residual_per_frame(sim, o, scene) for o in fit_obs]
     if ref_res is None:
         ref_res = [residual_per_frame(sim, o, ref_scene) for o in ref_obs]
-    fit_base = float(sum(r.sum() for r in fit_res))
-    ref_base = float(sum(r.sum() for r in ref_res)) if ref_obs else 0.0
+    start = (objective_at_start(sim, ref_obs, ref_scene, cfg, float(sum(r.sum() for r in ref_res))) if ref_obs
+             else objective_at_start(sim, fit_obs, scene, cfg, float(sum(r.sum() for r in fit_res))))
     den0 = max(sum(float(x.sum()) for x in base), 1e-12)
     with_load = bool(cfg.load_channel) and bool(held_obs) and all(o.load is not None for o in held_obs)
     if not with_load:
@@ -1021,7 +1020,7 @@ def rank_candidates(sim: Simulator, fit_obs: Sequence[EpisodeObs], held_obs: Seq
         log(f"  wrist load: measured {np.mean(meas):.3f} N on average over the held-out scored frames, the unchanged "
             f"model's error {np.mean(err):.3f} N")
     work = _CandidateWork(sim, list(fit_obs), list(held_obs), list(base), scene, cfg, list(ref_obs), ref_scene,
-                          fit_base, ref_base, den0, base_load)
+                          start, den0, base_load)
     cand_res: dict[str, list[np.ndarray]] = {}
     cand_base: dict[str, list[list[np.ndarray]]] = {}  # per candidate: its baselines (the smallest sum counts)
     load_res: dict[str, list[np.ndarray]] = {}
