@@ -31,7 +31,7 @@ from typing import Optional, Sequence
 import torch
 
 from benchmarks.bench_core import _actions, _sync, machine_description, make_object, timed_steps
-from soma_ros.core.physics import PhysicsPrior, build_layout, grasp_nodes, pbd_step
+from soma_ros.core.effects.physics import PhysicsPrior, build_layout, grasp_nodes, pbd_step
 from soma_ros.core.simulator import SceneContext, Simulator
 
 __all__ = ["lifted_droop", "solver_variants", "step_times", "main"]

@@ -12,7 +12,7 @@ vertices from ``--holds`` (the first index of each), and settle under gravity:
   timestep and solver), the held vertices pinned in place by the same soft ``connect`` equalities
   the world's grasp uses (:data:`soma_ros.world.scene.GRASP_SOLREF`), 5 s with the velocities
   damped 1% per step so that it comes to rest;
-* **prior**: the physics prior (:func:`soma_ros.core.physics.pbd_step`, on 1500 splats sampled in
+* **prior**: the physics prior (:func:`soma_ros.core.effects.physics.pbd_step`, on 1500 splats sampled in
   the rope's tube) with the hard grip on the nodes within its attach radius of the hold, 5 s of
   30 Hz steps. Its parameters and coefficients are a trained run's (``--run``) or a training
   config's physics term (``--config``, its bending then the world rope's own rho A / (4 E I));
@@ -24,7 +24,7 @@ vertices from ``--holds`` (the first index of each), and settle under gravity:
 with only its flex's own damping (as it runs in the datasets), the prior with ``--swing-damping``
 (default: its own): both arms' end heights every 3 frames and the long arm's swing period (its
 first two troughs). ``--carry-velocity`` sets the prior's setting of that name (each step from
-its own end-of-step velocities; :class:`soma_ros.core.physics.PhysicsPrior.Params`).
+its own end-of-step velocities; :class:`soma_ros.core.effects.physics.PhysicsPrior.Params`).
 
 Printed per hold and mass scale: each arm's end (horizontal distance along the rope, height)
 relative to the hold, and the mean / largest distance between the world's vertices and the
@@ -119,7 +119,7 @@ def prior_hang(params, coef: dict, obj, held: list[int], mass_scale: float, z: f
     damping is ``coef["damping"]``: set it to compare with the world's undamped swing)."""
     import torch
 
-    from soma_ros.core.physics import Grasp, PhysicsMods, build_layout, pbd_step
+    from soma_ros.core.effects.physics import Grasp, PhysicsMods, build_layout, pbd_step
 
     f64 = torch.float64
     rng = np.random.default_rng(seed)

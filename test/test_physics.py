@@ -10,7 +10,7 @@ import torch
 from benchmarks.physics_solver import lifted_droop
 from soma_ros.core.config import ConfigError, EffectSpec, load_model_config
 from soma_ros.core.effects import EffectContext, build_effect, build_effects
-from soma_ros.core.physics import (PhysicsMods, PhysicsPrior, build_layout, closing_axis, grasp_nodes, grip_time_constant,
+from soma_ros.core.effects.physics import (PhysicsMods, PhysicsPrior, build_layout, closing_axis, grasp_nodes, grip_time_constant,
                                    pbd_step)
 from soma_ros.core.robot import control_point_pattern
 from soma_ros.core.robot_config import ControlPointConfig

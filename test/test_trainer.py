@@ -498,7 +498,7 @@ def test_identification_continues_a_grid_whose_best_value_is_on_its_edge():
 def test_the_rod_config_identifies_the_rods_bending_on_a_reference_world_rope(lift_dataset, tmp_path):
     """``tiny_physics_rod``: the prior's nodes are a chain along the recorded rope's centre line and
     its bending compliance (the rod's, rho A / (4 EI)) is identified from the data like the pairs'."""
-    from soma_ros.core.physics import PhysicsPrior, build_layout
+    from soma_ros.core.effects.physics import PhysicsPrior, build_layout
     from trainer.config import load_train_config
     from trainer.train import load_scene, train
 

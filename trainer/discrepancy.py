@@ -360,7 +360,7 @@ def load_tensor(sim: Simulator, mass: torch.Tensor, means: torch.Tensor, gripper
     if float(gripper) > 0.5:
         return means.new_zeros(())
     from soma_ros.core.effects import smoothstep
-    from soma_ros.core.effects_library import MassScale
+    from soma_ros.core.effects.library import MassScale
 
     band = MassScale.Params()
     n = scene.plane_normal.to(means)

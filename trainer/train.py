@@ -630,7 +630,7 @@ def identify_prior(sim: Simulator, store: EpisodeStore, names: Sequence[str], cf
     ``{coefficient, criterion, episodes, chosen, rows}`` (rows beyond the grid: ``extended`` true).
     With ``then``, each further coefficient is identified the same way at the values chosen before
     it, and its own such record is listed under ``"then"``."""
-    from soma_ros.core.physics import PhysicsPrior
+    from soma_ros.core.effects.physics import PhysicsPrior
 
     terms = [sim.effects[k] for k in sim.effects.keys() if isinstance(sim.effects[k], PhysicsPrior)]
     if len(terms) != 1:

@@ -100,9 +100,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from .config import ConfigError
-from .effects import Effect, EffectContext, register_effect, smoothstep
-from .spring_mass import farthest_point_sampling, neighbour_pairs, skin_weights
+from ..config import ConfigError
+from .base import Effect, EffectContext, register_effect, smoothstep
+from .mods import PhysicsMods
+from ..spring_mass import farthest_point_sampling, neighbour_pairs, skin_weights
 
 __all__ = ["GRIP_TAU0", "grip_time_constant", "PhysicsMods", "PhysicsLayout", "PhysicsPrior", "Grasp", "build_layout",
            "grasp_nodes", "pbd_step"]
@@ -114,34 +115,6 @@ GRIP_TAU0 = 0.05  # s: the compliant grip's time-constant scale (module docstrin
 def grip_time_constant(g: torch.Tensor) -> torch.Tensor:
     """The compliant grip's time constant (s) for a loosening g > 0: ``GRIP_TAU0 (e^(2 g) - 1)``."""
     return GRIP_TAU0 * torch.expm1(2.0 * g)
-
-
-@dataclass
-class PhysicsMods:
-    """Changes of the physics prior asked by other effect terms (all zero = nominal). Tensors
-    are 0-d (scalars) or [3]; None = absent."""
-
-    accel: Optional[torch.Tensor] = None  # [3] m/s^2, uniform
-    pressure: Optional[torch.Tensor] = None  # [3] m/s^2, the field whose cross / normal part acts
-    linear_drag: Optional[torch.Tensor] = None  # 1/s
-    quadratic_drag: Optional[torch.Tensor] = None  # 1/m
-    friction: Optional[torch.Tensor] = None  # added to the table's mu
-    grip: Optional[torch.Tensor] = None  # > 0: a compliant grip, time constant GRIP_TAU0 (e^(2 grip) - 1); < 0: tighter
-    mass: Optional[torch.Tensor] = None  # the object is (1 + mass) times heavier (> -0.9)
-    stiffness: Optional[torch.Tensor] = None  # stretch and bending compliances / exp(stiffness)
-    release: Optional[torch.Tensor] = None  # != 0: the grip lets go once the load off the table exceeds e^(-release) x the weight
-
-    def add(self, other: "PhysicsMods") -> "PhysicsMods":
-        """The sum of two sets of changes (fields present in either)."""
-        out = PhysicsMods()
-        for name in self.__dataclass_fields__:
-            a, b = getattr(self, name), getattr(other, name)
-            setattr(out, name, a if b is None else (b if a is None else a + b))
-        return out
-
-    def pushes(self) -> bool:
-        """Whether a change here can move an object at rest (a field, not a drag or a scale)."""
-        return any(v is not None and bool((v != 0).any()) for v in (self.accel, self.pressure))
 
 
 @dataclass

@@ -4,7 +4,7 @@ Every term here is *zero at initialisation* (its learnable parameter starts at
 0), so adding one to a trained model changes nothing until it is fitted; each
 has one or two learnable scalars with a unit, and is registered in the core
 registry (:func:`soma_ros.core.effects.register_effect`) so a checkpoint that
-carries it loads anywhere (``effects.py`` imports this module).
+carries it loads anywhere (the package imports this module).
 
 ==================  ===========================================================
 table_friction      Coulomb-like sliding friction of the table on splats within
@@ -60,8 +60,9 @@ from dataclasses import dataclass
 
 import torch
 
-from .config import ConfigError
-from .effects import Effect, EffectContext, _param, register_effect, smoothstep
+from ..config import ConfigError
+from .base import Effect, EffectContext, _param, register_effect, smoothstep
+from .mods import PhysicsMods
 
 __all__ = ["TableFriction", "GripperSlip", "MassScale", "StiffnessScale", "smoothstep"]
 
@@ -94,8 +95,6 @@ class TableFriction(Effect):
         return -(self.mu * g_n) * (ctx.masses * w)[:, None] * vt / speed
 
     def physics_modifier(self, ctx: EffectContext):
-        from .physics import PhysicsMods
-
         return PhysicsMods(friction=self.mu)
 
 
@@ -129,8 +128,6 @@ class GripperSlip(Effect):
         self.weaken = _param(float(params.weaken))
 
     def physics_modifier(self, ctx: EffectContext):
-        from .physics import PhysicsMods
-
         return PhysicsMods(grip=self.loosen, release=self.weaken)
 
     def forward(self, ctx: EffectContext) -> torch.Tensor:
@@ -179,8 +176,6 @@ class MassScale(Effect):
         return 1.0 + self.excess.clamp(lo, hi)
 
     def physics_modifier(self, ctx: EffectContext):
-        from .physics import PhysicsMods
-
         return PhysicsMods(mass=self.excess)
 
 
@@ -206,6 +201,4 @@ class StiffnessScale(Effect):
         return ctx.positions.new_zeros(ctx.positions.shape)
 
     def physics_modifier(self, ctx: EffectContext):
-        from .physics import PhysicsMods
-
         return PhysicsMods(stiffness=self.log_scale)
