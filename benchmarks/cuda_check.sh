@@ -8,11 +8,6 @@
 #      the device name, CPU model and core count;
 #   1. python -m benchmarks.bench_core on cuda: models cpu and paper, 1k/4k/13k splats (cloth),
 #      20 timed steps per row, each step synced before and after; 320x240 render forward per size;
-#   2. python -m benchmarks.cuda_step_check: the paper model at 13k splats on cuda, step time with
-#      Simulator.step's finite check (bool(torch.isfinite(...).all()), a host sync per step) as it
-#      is vs bypassed, per-step-synced and back-to-back; the check alone; the host syncs per step
-#      and where; and the physics-prior model (config/train/tiny_physics.yaml, rope, 1.5k and 13k
-#      splats) on cpu and cuda;
 #   3. python -m benchmarks.bench_render on cuda (320x240 and 640x480, forward and forward+backward);
 #   4. python -m benchmarks.bench_core on cpu with $THREADS torch threads (default: all cores) and
 #      with 1 thread (the README's figures are 1 thread), paper model 3 timed steps;
@@ -20,7 +15,7 @@
 # Without CUDA (torch.cuda.is_available() False) steps 1-3 run their CPU parts only or are skipped,
 # so the script also runs end to end on a CPU-only machine (a smoke test; QUICK=1 shrinks it).
 #
-# Output: everything is tee'd to $OUT/log.txt; JSON rows go to $OUT/*.json (7 files in all).
+# Output: everything is tee'd to $OUT/log.txt; JSON rows go to $OUT/*.json (6 files in all).
 # $OUT defaults to /tmp/cuda_check_out.
 #
 # How to run, from the repository root (no install needed; the core needs torch, numpy, scipy,
@@ -47,11 +42,11 @@ fi
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 
 if [ "${QUICK:-0}" = 1 ]; then
-    SPLATS="1000 4000"; STEPS=3; PAPER_STEPS=1; FIN_SPLATS=1000; FIN_STEPS=3; FIN_BLOCKS=1
-    PHYS_SPLATS="1500"; PHYS_STEPS=2; RENDER_SPLATS="1000 4000"; REPEATS=1
+    SPLATS="1000 4000"; STEPS=3; PAPER_STEPS=1
+    RENDER_SPLATS="1000 4000"; REPEATS=1
 else
-    SPLATS="1000 4000 13000"; STEPS=20; PAPER_STEPS=3; FIN_SPLATS=13000; FIN_STEPS=20; FIN_BLOCKS=5
-    PHYS_SPLATS="1500 13000"; PHYS_STEPS=10; RENDER_SPLATS="1000 4000 13000"; REPEATS=5
+    SPLATS="1000 4000 13000"; STEPS=20; PAPER_STEPS=3
+    RENDER_SPLATS="1000 4000 13000"; REPEATS=5
 fi
 
 section() { echo; echo "=== $* ($(date +%T), ${SECONDS}s)"; }
@@ -79,7 +74,7 @@ try:
 except Exception as exc:
     print("gsplat: absent (%s): the renderer uses its torch path on CUDA too" % type(exc).__name__)
 EOF
-    "$PY" -c "import benchmarks.bench_core, benchmarks.bench_render, benchmarks.cuda_step_check, trainer.config; print('imports ok')" \
+    "$PY" -c "import benchmarks.bench_core, benchmarks.bench_render, trainer.config; print('imports ok')" \
         || echo "IMPORT FAILED"
     local has_cuda
     has_cuda=$("$PY" -c "import torch; print(int(torch.cuda.is_available()))" 2>/dev/null || echo 0)
@@ -91,13 +86,6 @@ EOF
     else
         section "1. bench_core on cuda: skipped (no CUDA)"
     fi
-
-    section "2. cuda_step_check (finite check on $([ "$has_cuda" = 1 ] && echo cuda || echo cpu); physics prior)"
-    local fin_dev=cuda fin_model=paper phys_devs="cpu cuda"
-    if [ "$has_cuda" != 1 ]; then fin_dev=cpu; fin_model=cpu; phys_devs="cpu"; fi
-    timeout 200 "$PY" -m benchmarks.cuda_step_check --device $fin_dev --model $fin_model --splats $FIN_SPLATS \
-        --steps $FIN_STEPS --blocks $FIN_BLOCKS --physics-devices $phys_devs --physics-splats $PHYS_SPLATS \
-        --physics-steps $PHYS_STEPS --threads "$THREADS" --json "$OUT/step_check.json" || echo "cuda_step_check FAILED (rc $?)"
 
     if [ "$has_cuda" = 1 ]; then
         section "3. bench_render on cuda"

@@ -23,7 +23,7 @@ Model (per step t -> t+1; the grasp, and with ``carry_velocity`` a velocity lag,
   rest length), or (``solver: newton``) by ``newton_iterations`` Gauss-Newton steps on the whole
   node system (:func:`_newton_project`). Long bending pairs make a rope or cloth as stiff as its
   compliances say with the Gauss-Newton solve; with a few Jacobi passes the passes, not the
-  compliances, set how stiff a long object is (``python -m benchmarks.physics_solver``).
+  compliances, set how stiff a long object is.
   **Rod** (``bend_model: rod``, ropes, Newton solver): the nodes are instead cells of equal length
   along the rope's centre line (:func:`centre_line_cells`), stretch acts between consecutive ones
   and bending on consecutive triples with an elastic rod's energy, quadratic in the turning angle
