@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
+from soma_ros.core.errors import DataError
 
 __all__ = ["GROUND_TRUTH_TOPIC", "GroundTruthError", "read_ground_truth_points", "decode_xyz_cloud"]
 
@@ -28,7 +29,7 @@ _FLOAT32 = 7
 _FLOAT64 = 8
 
 
-class GroundTruthError(ValueError):
+class GroundTruthError(DataError):
     """A bag without usable ground-truth object points (one-line reason)."""
 
 

@@ -35,6 +35,7 @@ from typing import Any, Mapping, Optional, Union
 import yaml
 
 from soma_ros.paths import resolve_config
+from .errors import ConfigError
 
 #: a decimal number with an exponent and no dot (1e-3, 5E+2), which PyYAML leaves a string
 _YAML12_FLOAT = re.compile(r"^[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+$")
@@ -54,10 +55,6 @@ __all__ = [
     "from_dict",
     "to_dict",
 ]
-
-
-class ConfigError(ValueError):
-    """A config value that cannot be used; the message names the key path."""
 
 
 # --------------------------------------------------------------------------- sections

@@ -19,6 +19,7 @@ from typing import Any, Mapping, Optional, Union
 import yaml
 
 from soma_ros.paths import ROBOTS_DIR, resolve_config
+from .errors import RobotError
 
 __all__ = [
     "RobotConfigError",
@@ -31,7 +32,7 @@ __all__ = [
 ]
 
 
-class RobotConfigError(ValueError):
+class RobotConfigError(RobotError):
     """A robot config that cannot be used (one-line message naming the key)."""
 
 

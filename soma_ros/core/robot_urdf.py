@@ -20,6 +20,7 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Union
+from .errors import RobotError
 
 __all__ = ["URDFError", "Mimic", "UrdfJoint", "UrdfModel", "parse_urdf", "MOVABLE_TYPES"]
 
@@ -28,7 +29,7 @@ MOVABLE_TYPES = ("revolute", "continuous", "prismatic")
 _KNOWN_TYPES = MOVABLE_TYPES + ("fixed", "floating", "planar")
 
 
-class URDFError(ValueError):
+class URDFError(RobotError):
     """A URDF that cannot be used, with a one-line message naming the element."""
 
 

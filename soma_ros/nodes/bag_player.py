@@ -38,6 +38,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator, Optional, Sequence
+from ..core.errors import NodeError
 
 PROG = "soma_bag_player"
 JOINT_STATES = "/joint_states"
@@ -53,7 +54,7 @@ OTHER_DEPTH = 10
 BEHIND_WARN_S = 0.05
 
 
-class PlayerError(Exception):
+class PlayerError(NodeError):
     """A problem with the bag or the arguments; its message is one line for the user."""
 
 

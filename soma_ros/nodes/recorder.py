@@ -37,12 +37,13 @@ from pathlib import Path
 from typing import Any, Optional
 
 from .bag_player import StopFlag, run_with_stop
+from ..core.errors import NodeError
 
 PROG = "soma_recorder"
 DRAIN_S = 2.0
 
 
-class RecorderError(Exception):
+class RecorderError(NodeError):
     """A problem the user must fix; its message is one line."""
 
 

@@ -26,11 +26,12 @@ import numpy as np
 from .config import ObjectConfig, RobotConfig, TaskMotionConfig
 from .objects import ObjectGeometry
 from .robot import ArmIK
+from ..core.errors import WorldError
 
 __all__ = ["Plan", "make_plan", "PlanError", "hand_rotation"]
 
 
-class PlanError(RuntimeError):
+class PlanError(WorldError):
     """The scripted motion could not be solved (unreachable pose)."""
 
 
