@@ -83,3 +83,24 @@ def test_exponent_floats_read_as_floats():
     assert load_model_config(patch).dynamics.max_speed == 20.0
     with pytest.raises(ConfigError, match=r"dynamics\.max_speed: expected float"):
         load_model_config({"dynamics": {"max_speed": "fast"}})
+
+
+def test_a_variant_names_its_base_and_only_what_differs(tmp_path):
+    from soma_ros.core.config import read_config
+
+    (tmp_path / "base.yaml").write_text("a: 1\nnested: {x: 1, y: [1, 2]}\nkeep: k\n")
+    (tmp_path / "mid.yaml").write_text("base: base\nnested: {y: [3]}\n")
+    (tmp_path / "top.yaml").write_text("base: mid.yaml\na: 2\n")
+    assert read_config(tmp_path / "top.yaml") == {"a": 2, "nested": {"x": 1, "y": [3]}, "keep": "k"}
+
+
+def test_a_missing_or_looping_base_is_one_clear_error(tmp_path):
+    from soma_ros.core.config import ConfigError, read_config
+
+    (tmp_path / "a.yaml").write_text("base: b\n")
+    (tmp_path / "b.yaml").write_text("base: a\n")
+    (tmp_path / "c.yaml").write_text("base: nowhere\n")
+    with pytest.raises(ConfigError, match=r"bases form a loop \(a.yaml -> b.yaml -> a.yaml\)"):
+        read_config(tmp_path / "a.yaml")
+    with pytest.raises(ConfigError, match="base 'nowhere' not found"):
+        read_config(tmp_path / "c.yaml")

@@ -54,6 +54,8 @@ __all__ = [
     "load_object_config",
     "from_dict",
     "to_dict",
+    "read_config",
+    "merge_config",
 ]
 
 
@@ -511,15 +513,54 @@ def to_dict(obj: Any) -> Any:
     return obj
 
 
-def _read_yaml(path: Path) -> dict:
+def merge_config(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict:
+    """``over`` merged into ``base``: mappings merge key by key, anything else (lists too)
+    is replaced."""
+    out = dict(base)
+    for key, value in over.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = merge_config(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def read_config(path: Union[str, Path], _chain: tuple = ()) -> dict:
+    """A YAML config file as a mapping, with its ``base:`` applied.
+
+    A variant names its base (``base: tiny``: a file of the same folder, with or without
+    ``.yaml``, or a path relative to that folder) and writes only what differs; the base's
+    mapping is read the same way (bases may chain) and the variant is merged over it
+    (:func:`merge_config`). The returned mapping has no ``base`` key.
+    """
+    path = Path(path)
+    key = path.resolve()
+    if key in _chain:
+        names = " -> ".join(p.name for p in (*_chain, key))
+        raise ConfigError(f"{path}: its bases form a loop ({names})")
     try:
         with open(path) as f:
             data = yaml.safe_load(f)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: invalid YAML: {exc}") from None
+        raise ConfigError(f"{path}: invalid YAML: {' '.join(str(exc).split())}") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level")
-    return data
+    base = data.pop("base", None)
+    if base is None:
+        return data
+    if not isinstance(base, str) or not base:
+        raise ConfigError(f"{path}: base must be the name of a config file, got {base!r}")
+    cands = [path.parent / base, path.parent / f"{base}.yaml"]
+    found = next((c for c in cands if c.is_file()), None)
+    if found is None:
+        raise ConfigError(f"{path}: base {base!r} not found next to it")
+    return merge_config(read_config(found, (*_chain, key)), data)
+
+
+def _read_yaml(path: Path) -> dict:
+    return read_config(path)
 
 
 def _resolve(name_or_path: Union[str, Path], folder: str) -> Path:

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping, Optional, Union
 
-import yaml
+from .config import ConfigError, read_config
 
 from soma_ros.paths import ROBOTS_DIR, resolve_config
 from .errors import RobotError
@@ -215,10 +215,10 @@ class RobotConfig:
         if not p.is_file():
             raise FileNotFoundError(f"robot config not found: {p}")
         try:
-            data = yaml.safe_load(p.read_text(encoding="utf-8"))
-        except yaml.YAMLError as exc:
-            raise RobotConfigError(f"{p.name}: invalid YAML ({' '.join(str(exc).split())})") from None
-        return cls.from_dict(data or {}, base_dir=p.resolve().parent, source=p.name)
+            data = read_config(p)
+        except ConfigError as exc:
+            raise RobotConfigError(str(exc)) from None
+        return cls.from_dict(data, base_dir=p.resolve().parent, source=p.name)
 
 
 def resolve_urdf_path(urdf: str, base_dir: Optional[Path] = None) -> Path:

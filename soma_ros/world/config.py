@@ -21,9 +21,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional, Union, get_args, get_origin, get_type_hints
 
-import yaml
 
 from ..paths import ROBOTS_DIR, resolve_config
+from ..core.config import read_config
 
 __all__ = [
     "PhysicsConfig",
@@ -125,14 +125,7 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
 
 
 def _read_yaml(path: Path) -> dict:
-    try:
-        with open(path, "r", encoding="utf-8") as fh:
-            data = yaml.safe_load(fh)
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{path}: invalid YAML ({exc.__class__.__name__})") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: top level must be a mapping")
-    return data
+    return read_config(path)
 
 
 def _vec(v: list[float], n: int, where: str) -> None:
