@@ -25,6 +25,7 @@ COMMANDS: list[tuple[str, str, str]] = [
     ("eval", "eval", "evaluate a checkpoint on a dataset (open-loop rollouts)"),
     ("resim", "resim", "open-loop resimulation of one bag, without ROS running"),
     ("discrepancy", "discrepancy", "find and name effects missing from the model"),
+    ("config", "config", "the configuration reference, and configs with their bases applied"),
     ("bench", "bench", "benchmarks (speed, memory, accuracy)"),
 ]
 
