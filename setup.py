@@ -21,8 +21,8 @@ def tree(src: str, dest_root: str):
 setup(
     name=PACKAGE,
     version="0.1.0",
-    packages=find_packages(include=["soma_ros", "soma_ros.*", "trainer", "trainer.*"]),
-    package_data={PACKAGE: ["data/robots/**/*"]},
+    packages=find_packages(include=["soma_ros", "soma_ros.*"]),
+    package_data={PACKAGE: ["resources/robots/**/*"]},
     include_package_data=True,
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),

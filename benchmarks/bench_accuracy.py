@@ -12,7 +12,7 @@ the spring-mass baseline, evaluate all of them and ``static`` on the training
 OUT/table.json ({object: {variant: {split: {metric: value}}}}) and
 OUT/bench.json. Presets: config/eval/<preset>.yaml (tiny: 2-core CPU, under
 an hour per object; paper: the paper's scale, for a GPU). See
-:mod:`trainer.bench_accuracy`.
+:mod:`soma_ros.evaluation.accuracy`.
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1") or 1))
-    from trainer.bench_accuracy import load_bench_config, run_bench
+    from soma_ros.evaluation.accuracy import load_bench_config, run_bench
 
     bench = load_bench_config(args.preset)
     if args.variants:
@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _run_parallel(args: argparse.Namespace, objects: list[str]) -> int:
     """One child process per object (``--objects OBJ``), at most ``args.jobs`` at once; the children
-    merge their rows into OUT/table.json (see :func:`trainer.bench_accuracy._write`)."""
+    merge their rows into OUT/table.json (see :func:`soma_ros.evaluation.accuracy._write`)."""
     import json
     import subprocess
     from pathlib import Path
@@ -137,7 +137,7 @@ def finish_parallel(out, preset: str, wall: float, jobs: int) -> None:
     import json
     from pathlib import Path
 
-    from trainer.bench_accuracy import _command_line, _write, load_bench_config
+    from soma_ros.evaluation.accuracy import _command_line, _write, load_bench_config
 
     out = Path(out)
     if not (out / "bench.json").is_file() or not (out / "table.json").is_file():

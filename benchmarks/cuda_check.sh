@@ -74,7 +74,7 @@ try:
 except Exception as exc:
     print("gsplat: absent (%s): the renderer uses its torch path on CUDA too" % type(exc).__name__)
 EOF
-    "$PY" -c "import benchmarks.bench_core, benchmarks.bench_render, trainer.config; print('imports ok')" \
+    "$PY" -c "import benchmarks.bench_core, benchmarks.bench_render, soma_ros.training.config; print('imports ok')" \
         || echo "IMPORT FAILED"
     local has_cuda
     has_cuda=$("$PY" -c "import torch; print(int(torch.cuda.is_available()))" 2>/dev/null || echo 0)

@@ -9,7 +9,7 @@
    from the same world and seed with that effect switched on (OUT/data/<obj>_<effect>). And the
    workflow's own-error reference: ``--reference-episodes`` effect-free episodes of world seed + 1
    (OUT/data/<obj>_reference), which neither the model nor the measured data contain.
-3. The workflow (:func:`trainer.discrepancy.run_discrepancy`) on it -> OUT/<effect>/report.{md,json}.
+3. The workflow (:func:`soma_ros.discrepancy.workflow.run_discrepancy`) on it -> OUT/<effect>/report.{md,json}.
 4. Scoring (the benchmark, not the workflow, reads the evaluation sidecars ``<episode>.meta.json``
    to learn which effect is on): OUT/table.md and OUT/bench.json with, per hidden effect, the named
    effect, whether it matches, the explained fractions and the held-out gap before/after (depth RMSE,
@@ -168,7 +168,7 @@ def _generate(obj: str, out: Path, episodes: int, seed: int, effect: str, world_
 
     if (out / "manifest.json").is_file():
         if frames is not None:
-            from trainer.dataset import load_manifest
+            from soma_ros.data.dataset import load_manifest
 
             have = sorted({e.get("frames") for e in load_manifest(out)["episodes"]})
             if have != [int(frames)]:
@@ -191,7 +191,7 @@ def run(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1") or 1))
     from soma_ros.core.checkpoint import read_checkpoint
-    from trainer.discrepancy import load_discrepancy_config, run_discrepancy
+    from soma_ros.discrepancy.workflow import load_discrepancy_config, run_discrepancy
 
     log = lambda s: print(s, flush=True)  # noqa: E731
     out = Path(args.out)
@@ -210,8 +210,8 @@ def run(args: argparse.Namespace) -> int:
         extra = read_checkpoint(run_dir / "checkpoint.pt")["extra"]
         log(f"model: reusing {run_dir} (trained on {extra.get('dataset')})")
     else:
-        from trainer.config import load_train_config
-        from trainer.train import train
+        from soma_ros.training.config import load_train_config
+        from soma_ros.training.train import train
 
         clean = _generate(args.object, out / "data" / f"{args.object}_none", args.episodes, args.seed, "none",
                           args.world_config, log, args.effects_config, args.frames)

@@ -1,10 +1,10 @@
 """Wall time of the discrepancy workflow's candidate fits, one after another vs in worker processes.
 
-``rank_candidates`` (:mod:`trainer.discrepancy`) fits every candidate effect three times
+``rank_candidates`` (:mod:`soma_ros.discrepancy.workflow`) fits every candidate effect three times
 (calibration on the reference, re-fit on the measured episodes, continued calibration): the
 workflow's long part (about 75 min for 7 candidates on 80-frame rope episodes, one CPU core).
 The candidates are independent, so ``jobs`` fits them in that many spawned worker processes.
-This benchmark times :func:`trainer.discrepancy.rank_candidates` on a synthetic task for each
+This benchmark times :func:`soma_ros.discrepancy.workflow.rank_candidates` on a synthetic task for each
 ``--jobs`` value, checks that every value gives the same fits and ranking, and prints the
 wall times and the speed-up over ``jobs=1`` with the machine named.
 
@@ -36,7 +36,7 @@ def wind_episodes(sim, scene, accel, seeds, split: str, frames: int = 13, splats
     ``frames`` long by ``sim`` plus a direct wind ``accel`` (m/s^2), every 4th frame observed as
     every 3rd splat with 3 mm of noise (as back-projected depth has)."""
     from soma_ros.core.scenes import synthetic_rope
-    from trainer.discrepancy import EpisodeObs, _rollout
+    from soma_ros.discrepancy.workflow import EpisodeObs, _rollout
 
     world = copy.deepcopy(sim)
     world.add_effect({"name": "wind", "direct": True, "accel": list(accel)})
@@ -60,7 +60,7 @@ def synthetic_task(episodes: int = 3, frames: int = 13, splats: int = 300, wind=
     synthetic rope; ``episodes`` of each kind (:func:`wind_episodes`), the reference without wind."""
     from soma_ros.core.scenes import synthetic_rope
     from soma_ros.core.simulator import SceneContext, Simulator
-    from trainer.config import load_train_config
+    from soma_ros.training.config import load_train_config
 
     torch.manual_seed(0)
     scene = SceneContext.table()
@@ -75,7 +75,7 @@ def synthetic_task(episodes: int = 3, frames: int = 13, splats: int = 300, wind=
 
 def time_ranking(jobs: int, task, iters: int) -> dict:
     """Run rank_candidates with ``jobs`` workers on ``task``; wall time and the outcome."""
-    from trainer.discrepancy import load_discrepancy_config, rank_candidates, residual_per_frame
+    from soma_ros.discrepancy.workflow import load_discrepancy_config, rank_candidates, residual_per_frame
 
     sim, fit, held, ref, scene = task
     cfg = load_discrepancy_config("physics", {"fit_iters": iters, "bootstrap": 300, "grid_episodes": 2})

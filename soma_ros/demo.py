@@ -87,7 +87,7 @@ def main(argv=None) -> int:
     # 3. live: node + recorder + bag player. The node starts from the run's G_0; the
     #    held-out episode starts from G_0 aligned to its own first frame, which is sent
     #    through /soma/reset exactly as a user would (soma scene reset --file).
-    from trainer.evaluate import EvalContext
+    from soma_ros.evaluation.evaluate import EvalContext
 
     from .core.ply import write_ply
     from .nodes.testing import RosProcess

@@ -37,7 +37,7 @@ def _read_live(bag: Path, cams: Sequence[str]) -> dict:
 def write_report(out: Path, held_bag: Path, live_bag: Path, eval_dir: Path, cams: Sequence[str], seconds: float) -> Path:
     import cv2
 
-    from trainer.bags import read_episode
+    from soma_ros.data.bags import read_episode
 
     live = _read_live(live_bag, cams)
     meas = read_episode(held_bag, cameras=list(cams))

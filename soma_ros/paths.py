@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 PACKAGE_DIR = Path(__file__).resolve().parent
-DATA_DIR = PACKAGE_DIR / "data"
-ROBOTS_DIR = DATA_DIR / "robots"
+RESOURCES_DIR = PACKAGE_DIR / "resources"
+ROBOTS_DIR = RESOURCES_DIR / "robots"
 
 
 def config_dir() -> Path:

@@ -95,8 +95,8 @@ def train_tiny_run(data: Path, run: Path, episodes: int, frames: int, seed: int 
     """A tiny rope dataset (`episodes` x `frames`) and a barely trained `tiny` model on it
     (2 iterations: the mechanics of what consumes a run, not its accuracy)."""
     from soma_ros.world import generate_dataset, load_world_config
-    from trainer.config import load_train_config
-    from trainer.train import train
+    from soma_ros.training.config import load_train_config
+    from soma_ros.training.train import train
 
     generate_dataset(load_world_config(), "rope", "tiny", data, episodes=episodes, seed=seed, frames=frames, progress=False)
     cfg = load_train_config("tiny", {

@@ -113,7 +113,7 @@ def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = [p.name for p in ROOT.iterdir() if p.is_dir() and (p / "__init__.py").is_file()
-            and p.name in ("soma_ros", "trainer")]
+            and p.name == "soma_ros"]
 ROS_NAMES = {"rclpy", "rosidl_runtime_py", "sensor_msgs", "std_msgs", "geometry_msgs", "tf2_msgs",
              "builtin_interfaces", "std_srvs", "soma_msgs"}
 

@@ -68,7 +68,7 @@ def copy_bag(src: Path, dst: Path, drop: tuple[str, ...] = (), empty: tuple[str,
 
 
 def one_line_error(fn) -> str:
-    from trainer.bags import BagError
+    from soma_ros.data.bags import BagError
 
     with pytest.raises(BagError) as exc:
         fn()
@@ -79,8 +79,8 @@ def one_line_error(fn) -> str:
 
 def test_prepare_episode_shapes_frames_and_actions(good_dataset, robot):
     from soma_ros.core.calibration import Sim3
-    from trainer.bags import FORBIDDEN_TOPICS
-    from trainer.dataset import load_dataset, prepare_episode
+    from soma_ros.data.bags import FORBIDDEN_TOPICS
+    from soma_ros.data.dataset import load_dataset, prepare_episode
 
     refs = load_dataset(good_dataset)
     assert [r.name for r in refs] == ["rope_000"] and refs[0].task == "lift"
@@ -114,7 +114,7 @@ def test_prepare_episode_shapes_frames_and_actions(good_dataset, robot):
     uv, z = cams.select([fixed]).project(pts)
     assert (z > 0).all()
     # downscaled training resolution
-    from trainer.config import DataConfig
+    from soma_ros.training.config import DataConfig
 
     half = prepare_episode(refs[0].bag, robot, DataConfig(resolution_scale=0.5))
     assert (half.width, half.height) == (80, 60) and torch.allclose(half.K[:, :2], ep.K[:, :2] * 0.5)
@@ -122,7 +122,7 @@ def test_prepare_episode_shapes_frames_and_actions(good_dataset, robot):
 
 
 def test_mcap_bag_reads_the_same(good_dataset, robot, tmp_path):
-    from trainer.dataset import prepare_episode
+    from soma_ros.data.dataset import prepare_episode
 
     src = good_dataset / "rope_000"
     mc = copy_bag(src, tmp_path / "mcap_bag", storage="mcap")
@@ -132,7 +132,7 @@ def test_mcap_bag_reads_the_same(good_dataset, robot, tmp_path):
 
 
 def test_missing_camera_topic_names_it(good_dataset, robot, tmp_path):
-    from trainer.dataset import prepare_episode
+    from soma_ros.data.dataset import prepare_episode
 
     bad = copy_bag(good_dataset / "rope_000", tmp_path / "no_side_color", drop=("/cam_side/color/image_raw",))
     msg = one_line_error(lambda: prepare_episode(bad, robot))
@@ -143,7 +143,7 @@ def test_missing_camera_topic_names_it(good_dataset, robot, tmp_path):
 
 
 def test_wrong_image_encoding_names_it(good_dataset, robot, tmp_path):
-    from trainer.dataset import prepare_episode
+    from soma_ros.data.dataset import prepare_episode
 
     def yuv(topic, msg):
         if topic == "/cam_front/color/image_raw":
@@ -156,7 +156,7 @@ def test_wrong_image_encoding_names_it(good_dataset, robot, tmp_path):
 
 
 def test_empty_joint_states_names_it(good_dataset, robot, tmp_path):
-    from trainer.dataset import prepare_episode
+    from soma_ros.data.dataset import prepare_episode
 
     bad = copy_bag(good_dataset / "rope_000", tmp_path / "empty_js", empty=("/joint_states",))
     assert "/joint_states is empty" in one_line_error(lambda: prepare_episode(bad, robot))
@@ -168,8 +168,8 @@ def test_joint_efforts_are_read_when_every_message_has_them(good_dataset, robot,
     """The world records efforts (the arm's external torques, the gripper's force): they are read
     per joint name at the frame stamps and give the wrist force; a bag whose /joint_states carry
     none (a rig without torque sensing), or only some messages with them, gives None."""
-    from trainer.bags import read_episode
-    from trainer.dataset import prepare_episode
+    from soma_ros.data.bags import read_episode
+    from soma_ros.data.dataset import prepare_episode
 
     src = good_dataset / "rope_000"
     ep = read_episode(src)

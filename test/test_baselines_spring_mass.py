@@ -129,7 +129,7 @@ def test_payload_roundtrip():
 
 
 class _SyntheticEpisode:
-    """The parts of trainer.dataset.EpisodeData that fit_spring_mass reads, with 'observed' points
+    """The parts of soma_ros.data.dataset.EpisodeData that fit_spring_mass reads, with 'observed' points
     made by a spring-mass model of known parameters (full point sets, not partial views)."""
 
     def __init__(self, name, actions, points):
@@ -145,7 +145,7 @@ class _SyntheticEpisode:
 
 
 def test_fit_recovers_a_known_stiffness():
-    from trainer.baselines import SpringMassFitConfig, fit_spring_mass
+    from soma_ros.evaluation.baselines import SpringMassFitConfig, fit_spring_mass
 
     sp, scene = _rope_and_scene()
     mcfg = SpringMassConfig(num_nodes=30, substeps=8, total_mass=0.05)

@@ -19,7 +19,7 @@ def test_the_configuration_reference_matches_the_code():
 def test_the_reference_lists_every_key_of_a_section():
     import dataclasses
 
-    from trainer.config import LossConfig
+    from soma_ros.training.config import LossConfig
 
     text = reference()
     section = text[text.index("### Training: `loss`"):]

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from soma_ros.core.effects import EffectContext, build_effect
-from trainer.discrepancy import bootstrap_explained, decide, load_discrepancy_config
+from soma_ros.discrepancy.workflow import bootstrap_explained, decide, load_discrepancy_config
 
 torch.set_num_threads(1)
 
@@ -145,7 +145,7 @@ def test_the_wrist_load_breaks_a_tie_the_camera_cannot():
 def test_predicted_load_weighs_the_lifted_part_on_a_closed_gripper():
     from soma_ros.core.effects import EffectSet
     from soma_ros.core.simulator import SceneContext
-    from trainer.discrepancy import predicted_load
+    from soma_ros.discrepancy.workflow import predicted_load
 
     class Model:  # what predicted_load reads of a Simulator: its effects
         effects = EffectSet([])
@@ -180,7 +180,7 @@ def test_discrepancy_detection_compares_episode_residuals_with_the_reference():
     """Rank-based: a measured set whose residuals are 1.5x the reference's is detected, the same
     distribution is not (also with a reference episode where the model failed, like the rope's
     133 mm), and fewer than 3 episodes on a side is not assessed."""
-    from trainer.discrepancy import detect_discrepancy
+    from soma_ros.discrepancy.workflow import detect_discrepancy
 
     rng = np.random.default_rng(1)
     ref = np.exp(rng.normal(np.log(0.006), 0.35, 20))
@@ -206,7 +206,7 @@ def test_discrepancy_detection_pairs_episodes_of_the_same_task():
     the lifts hide it from the pooled statistic. Over 40 draws (12 reference episodes, 20
     measured, half lifts; measured here: 34 of 40 same-task, 0 pooled); with no shift either
     detects at about its 5% level (2 of 40). Labels that do not overlap leave episodes unpaired."""
-    from trainer.discrepancy import detect_discrepancy
+    from soma_ros.discrepancy.workflow import detect_discrepancy
 
     lvl = {"lift": 0.008, "drag": 0.003}
     rt, mt = ["lift", "drag"] * 6, ["lift", "drag"] * 10
@@ -240,7 +240,7 @@ def test_episode_residuals_point_at_episodes_beyond_the_models_own_error():
     """Each measured episode against the largest reference residual of its task, worst first: a
     subset hit hard (2 of 4 lifts at 20x) is flagged, the rest not; a task the reference lacks is
     compared with all reference episodes; no reference: nothing flagged."""
-    from trainer.discrepancy import beyond_reference_tail, episode_residuals
+    from soma_ros.discrepancy.workflow import beyond_reference_tail, episode_residuals
 
     ref = [("lift", 0.008), ("lift", 0.010), ("drag", 0.004), ("drag", 0.005)]
     meas = {"a": {"task": "lift", "residual": 0.20}, "b": {"task": "lift", "residual": 0.009},
@@ -269,7 +269,7 @@ def test_beyond_reference_tail_is_the_exact_law_under_exchangeability():
     import itertools
     import math
 
-    from trainer.discrepancy import beyond_reference_tail
+    from soma_ros.discrepancy.workflow import beyond_reference_tail
 
     k, m = 3, 4
     counts = np.zeros(k + 1)
@@ -306,7 +306,7 @@ def test_candidates_are_fitted_as_direct_effects_and_recover_a_hidden_wind(monke
     from soma_ros.core.config import load_model_config
     from soma_ros.core.scenes import synthetic_rope
     from soma_ros.core.simulator import SceneContext, Simulator
-    from trainer.discrepancy import EpisodeObs, _rollout, fit_effect, residual_per_frame
+    from soma_ros.discrepancy.workflow import EpisodeObs, _rollout, fit_effect, residual_per_frame
 
     assert load_discrepancy_config("default").direct and load_discrepancy_config("fast").direct
     torch.manual_seed(0)
@@ -342,7 +342,7 @@ def test_candidates_are_fitted_as_direct_effects_and_recover_a_hidden_wind(monke
     assert abs(plain["accel"][1]) < 1.0 and abs(gridded["accel"][1] - 9.81) < 0.5, (plain, gridded)
     # the step sizes follow the cosine decay, a step whose gradient is not finite (not taken) counted
     # as one; a fit whose first gradient is such raises no scheduler warning (torch's LambdaLR did)
-    import trainer.discrepancy as D
+    import soma_ros.discrepancy.workflow as D
 
     lrs, checks = [], []
     real_step, real_finite = torch.optim.Adam.step, D._finite_grads
@@ -396,7 +396,7 @@ def clean_run(tmp_path_factory):
 
 def test_workflow_end_to_end_negative_control(clean_run):
     from soma_ros.core.checkpoint import load_checkpoint
-    from trainer.discrepancy import run_discrepancy
+    from soma_ros.discrepancy.workflow import run_discrepancy
 
     root, data = clean_run
     cfg = load_discrepancy_config("fast", {"frame_stride": 3, "fit_iters": 2, "eval_frame_stride": 3})
@@ -445,9 +445,9 @@ def test_workflow_end_to_end_negative_control(clean_run):
     sim = load_checkpoint(out / "model" / "checkpoint.pt")
     assert set(sim.effects.keys()) == {"gravity", "support", "robot"}
     # a candidate added to the trained model changes nothing until fitted (zero-init), bit for bit
-    from trainer.discrepancy import EpisodeObs, residual_per_frame
-    from trainer.evaluate import EvalContext
-    from trainer.config import load_train_config
+    from soma_ros.discrepancy.workflow import EpisodeObs, residual_per_frame
+    from soma_ros.evaluation.evaluate import EvalContext
+    from soma_ros.training.config import load_train_config
 
     ctx = EvalContext(data, load_train_config(root / "run" / "train_config.yaml"), root / "run" / "scene")
     ref = ctx.refs[0]
@@ -473,7 +473,7 @@ def test_calibration_on_the_models_own_conditions_separates_its_error_from_the_n
     from soma_ros.core.config import load_model_config
     from soma_ros.core.scenes import synthetic_rope
     from soma_ros.core.simulator import SceneContext, Simulator
-    from trainer.discrepancy import rank_candidates, residual_per_frame
+    from soma_ros.discrepancy.workflow import rank_candidates, residual_per_frame
 
     torch.manual_seed(0)
     scene = SceneContext.table()
@@ -528,8 +528,8 @@ def test_cli_reports_a_bad_reference_dataset_clearly(clean_run, tmp_path, capsys
 
 
 def test_stratified_holdout_holds_out_every_task():
-    from trainer.dataset import EpisodeRef
-    from trainer.discrepancy import heldout_names
+    from soma_ros.data.dataset import EpisodeRef
+    from soma_ros.discrepancy.workflow import heldout_names
 
     tasks = ["lift", "drag", "fold"] * 3 + ["lift"]  # the cloth dataset's cycle, 10 episodes
     refs = [EpisodeRef(f"e{i}", None, "test" if i in (3, 6, 9) else "train", t) for i, t in enumerate(tasks)]
@@ -542,7 +542,7 @@ def test_stratified_holdout_holds_out_every_task():
 
 
 def test_load_model_exempts_the_trained_terms_by_default(clean_run):
-    from trainer.discrepancy import load_model
+    from soma_ros.discrepancy.workflow import load_model
 
     root, _ = clean_run
     ck = root / "run" / "checkpoint.pt"
@@ -572,7 +572,7 @@ def _falling_rope(excess: float):
     from soma_ros.core.config import load_model_config
     from soma_ros.core.scenes import synthetic_rope
     from soma_ros.core.simulator import SceneContext, Simulator
-    from trainer.discrepancy import EpisodeObs, _rollout
+    from soma_ros.discrepancy.workflow import EpisodeObs, _rollout
 
     torch.manual_seed(0)
     sp = synthetic_rope(300, seed=1, center=(0.0, 0.0, 0.3))
@@ -593,7 +593,7 @@ def test_fits_stay_inside_the_terms_physical_range():
     about 20 (21 times the mass), outside its declared range [-0.9, 9]; the fit (grid start, Adam,
     line search) stops on the bound and says so. Unbounded terms are unchanged by the projection."""
     from soma_ros.core.effects import EFFECTS, build_effect
-    from trainer.discrepancy import _line_search, _rollout, fit_effect
+    from soma_ros.discrepancy.workflow import _line_search, _rollout, fit_effect
 
     for name, cls in EFFECTS.items():  # every declared bound names a parameter and is an interval
         eff = build_effect(name)
@@ -628,7 +628,7 @@ def test_the_fit_weighs_the_wrist_load_as_the_ranking_does():
     load has no weight."""
     import copy
 
-    from trainer.discrepancy import FitObjective, _rollout, fit_effect, objective_at_start, load_tensor, predicted_load
+    from soma_ros.discrepancy.workflow import FitObjective, _rollout, fit_effect, objective_at_start, load_tensor, predicted_load
 
     sim, world, ob, scene = _falling_rope(3.0)
     ob.gripper = torch.zeros_like(ob.gripper)  # closed: the rope's weight is on the wrist
@@ -664,7 +664,7 @@ def test_the_fit_weighs_the_wrist_load_as_the_ranking_does():
 def test_the_line_search_continues_past_its_smallest_scale_only_when_asked():
     """``line_search_extend``: a best scale at the end of the list is followed beyond it (that end's
     ratio) while the residual falls, and stops at the first scale that does not lower it."""
-    from trainer.discrepancy import _line_search
+    from soma_ros.discrepancy.workflow import _line_search
 
     with pytest.raises(ValueError, match="line_search_extend"):
         load_discrepancy_config("fast", {"line_search_extend": -1})
@@ -685,7 +685,7 @@ def _grid_search_on(monkeypatch, residual_of, overrides: dict) -> dict:
     (0, 0), for each config override set in ``overrides`` ({key: {option: value}}), with the
     residual a function ``residual_of(hold, sag)`` of the term's parameters (the search itself is
     what is tested; the rollouts it stands for are tested with the workflow)."""
-    import trainer.discrepancy as D
+    import soma_ros.discrepancy.workflow as D
     from soma_ros.core.config import load_model_config
     from soma_ros.core.simulator import Simulator
 

@@ -247,7 +247,7 @@ def test_effects_declared_zero_at_rest_are_exactly_zero_at_rest():
         assert torch.count_nonzero(eff(at_rest)) == 0, name
         moving = _ctx(z=0.002, vel=torch.full((50, 3), 0.1))
         assert torch.count_nonzero(eff(moving)) > 0, name
-    from trainer.train import rest_reach
+    from soma_ros.training.train import rest_reach
 
     cfg = load_model_config("cpu")
     cfg.effects.append(EffectSpec("table_friction", key="friction", params={"mu": 0.5}, direct=True, feature=False))

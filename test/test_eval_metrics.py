@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from soma_ros.core.cameras import Cameras, look_at
-from trainer.evaluate_metrics import (
+from soma_ros.evaluation.metrics import (
     FrameScores,
     aggregate_episodes,
     aggregate_frames,
@@ -269,7 +269,7 @@ def _write_gt_bag(path, clouds, cloud_stamps, image_stamps):
 
 
 def test_read_ground_truth_points(tmp_path):
-    from trainer.evaluate_gt import GroundTruthError, read_ground_truth_points
+    from soma_ros.evaluation.ground_truth import GroundTruthError, read_ground_truth_points
 
     t0 = 1_700_000_000 * 10**9
     period = 33_333_333
@@ -304,15 +304,15 @@ def test_training_reader_never_reads_ground_truth():
     """The evaluation-only reader is the only module that names the topic outside the forbidden list."""
     import inspect
 
-    import trainer.bags as bags
-    import trainer.dataset as dataset
+    import soma_ros.data.bags as bags
+    import soma_ros.data.dataset as dataset
 
     assert "/world/object_points" in bags.FORBIDDEN_TOPICS
     assert "evaluate_gt" not in inspect.getsource(dataset) and "evaluate_gt" not in inspect.getsource(bags)
 
 
 def test_comparison_tiles_show_what_is_scored():
-    from trainer.evaluate_viz import comparison_tiles, sample_frames
+    from soma_ros.evaluation.viz import comparison_tiles, sample_frames
 
     H, W = 6, 8
     gt = torch.full((H, W, 3), 0.5)

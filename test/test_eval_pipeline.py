@@ -15,8 +15,8 @@ import torch
 from soma_ros.core import metrics as M
 from soma_ros.core.render import render
 from soma_ros.core.config import ConfigError
-from trainer.bench_accuracy import BenchConfig, TrainSection, WorldSection, load_bench_config, run_bench, variant_train_config
-from trainer.evaluate_metrics import METRICS, chamfer_distance, complete_depth_maps, table_depth
+from soma_ros.evaluation.accuracy import BenchConfig, TrainSection, WorldSection, load_bench_config, run_bench, variant_train_config
+from soma_ros.evaluation.metrics import METRICS, chamfer_distance, complete_depth_maps, table_depth
 
 torch.set_num_threads(1)
 
@@ -115,7 +115,7 @@ def test_variant_configs_differ_only_as_documented():
 def test_bench_never_selects_on_the_test_split():
     """Every learned variant validates (and so picks its kept checkpoint) on training-split
     episodes; a config that would validate on the scored test split is refused."""
-    from trainer.bench_accuracy import _check_no_test_selection, load_bench_config
+    from soma_ros.evaluation.accuracy import _check_no_test_selection, load_bench_config
     from soma_ros.core.config import ConfigError
 
     for preset in ("tiny", "paper", "tiny_mlp"):
@@ -133,8 +133,8 @@ def test_bench_never_selects_on_the_test_split():
 def test_static_numbers_match_an_independent_computation(bench_run):
     """Recompute the static baseline's scores of the held-out episode frame by frame with the core
     metrics and the ground-truth reader: frame alignment, masks and aggregation must agree."""
-    from trainer.evaluate import EvalContext
-    from trainer.evaluate_gt import read_ground_truth_points
+    from soma_ros.evaluation.evaluate import EvalContext
+    from soma_ros.evaluation.ground_truth import read_ground_truth_points
 
     out, _, _ = bench_run
     res = json.loads((out / "eval" / "rope" / "test" / "static" / "metrics.json").read_text())
@@ -214,7 +214,7 @@ def test_rerun_reuses_finished_steps(bench_run):
 def test_parallel_objects_merge_their_rows_into_one_table(tmp_path):
     """Objects benchmarked by separate processes (``--jobs``) write into one folder: each write
     keeps the other processes' objects, and an object's own newest rows win."""
-    from trainer.bench_accuracy import _write, load_bench_config
+    from soma_ros.evaluation.accuracy import _write, load_bench_config
 
     bench = load_bench_config("tiny")
     row = lambda x: {"test": {m: x for m in METRICS}, "train": {m: x for m in METRICS}}  # noqa: E731

@@ -94,9 +94,9 @@ def test_align_splats_moves_g0_onto_another_episode(two_episodes):
     """G_0 of episode 0 aligned to episode 1's first frame lies on episode 1's object points;
     the non-rigid stage does not do worse than the rigid one."""
     from soma_ros.core.robot import RobotModel
-    from trainer.config import load_train_config
-    from trainer.dataset import load_dataset, prepare_episode
-    from trainer.scene_setup import align_splats, setup_scene
+    from soma_ros.training.config import load_train_config
+    from soma_ros.data.dataset import load_dataset, prepare_episode
+    from soma_ros.scene.scene_setup import align_splats, setup_scene
 
     cfg = load_train_config("tiny", {"scene": {"photometric_iters": 0}})
     robot = RobotModel.from_config("panda", dtype=torch.float64)

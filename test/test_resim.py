@@ -3,7 +3,7 @@
 * the output bag (read back with rosbags) holds every recorded topic unchanged and the
   simulated topics, one message per recorded frame, stamped like the recorded frames,
   with the right encodings, sizes, camera poses and splat layout;
-* metrics.json equals what :mod:`trainer.evaluate` computes for the same episode (also for
+* metrics.json equals what :mod:`soma_ros.evaluation.evaluate` computes for the same episode (also for
   a copy of the bag outside the dataset, whose initial state is aligned afresh);
 * it runs without rclpy ever being imported (a subprocess);
 * bad inputs give one-line errors and exit code 1.
@@ -99,8 +99,8 @@ def test_rclpy_is_never_imported(resim_out):
 
 def test_output_bag_holds_recorded_and_simulated_topics(resim_out, tiny_run):
     from soma_ros.core.cloud_layout import POINT_STEP, SPLAT_FIELDS, cloud_to_splats
-    from trainer.bags import decode_image
-    from trainer.evaluate import EvalContext
+    from soma_ros.data.bags import decode_image
+    from soma_ros.evaluation.evaluate import EvalContext
 
     data, run = tiny_run
     out, _, _ = resim_out
@@ -158,7 +158,7 @@ def test_output_bag_holds_recorded_and_simulated_topics(resim_out, tiny_run):
         assert np.median(np.abs(sim_depth[both] - rec_depth[both])) < 0.03, cam  # metres, like the recording
 
     # TF: world -> soma_sim (identity), soma_sim -> each camera at its recorded pose (the wrist camera moves)
-    from trainer.bags import tf_to_matrix
+    from soma_ros.data.bags import tf_to_matrix
 
     for t in (0, T - 1):
         tf = {(x.header.frame_id, x.child_frame_id): x for x in _msg(got["/tf"][t]).transforms}
@@ -182,9 +182,9 @@ def test_output_bag_holds_recorded_and_simulated_topics(resim_out, tiny_run):
 
 def test_metrics_equal_the_evaluation_harness(resim_out, tiny_run, tmp_path):
     from soma_ros.cli import main
-    from trainer.baselines import load_model
-    from trainer.evaluate import EvalConfig, EvalContext, evaluate_models
-    from trainer.evaluate_metrics import METRICS
+    from soma_ros.evaluation.baselines import load_model
+    from soma_ros.evaluation.evaluate import EvalConfig, EvalContext, evaluate_models
+    from soma_ros.evaluation.metrics import METRICS
 
     data, run = tiny_run
     out, _, _ = resim_out

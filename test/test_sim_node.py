@@ -515,7 +515,7 @@ def test_parameters_file_in_config_matches_the_node_and_starts_it(ros_env, untra
 
 # --------------------------------------------------------------------------- trained model: lift
 TRAIN_CONFIG = ROOT / "config" / "train" / "tiny.yaml"
-TRAINER = ROOT / "trainer" / "train.py"
+TRAINER = ROOT / "soma_ros" / "training" / "train.py"
 
 
 @pytest.fixture(scope="session")
@@ -528,7 +528,7 @@ def trained_run(tmp_path_factory):
     same function the command calls).
     """
     if not (TRAINER.is_file() and TRAIN_CONFIG.is_file()):
-        pytest.skip("trainer/train.py or config/train/tiny.yaml missing")
+        pytest.skip("soma_ros/training/train.py or config/train/tiny.yaml missing")
     from soma_ros.nodes.testing import ros_env as make_env, unique_domain_id
 
     root = tmp_path_factory.mktemp("trained")
@@ -543,7 +543,7 @@ def trained_run(tmp_path_factory):
                "--out", str(run), "--quiet"]
     else:
         cmd = [sys.executable, "-c", "import sys; from pathlib import Path; "
-               "from trainer.config import load_train_config; from trainer.train import train; "
+               "from soma_ros.training.config import load_train_config; from soma_ros.training.train import train; "
                "train(load_train_config(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3]), log=lambda *a, **k: None)",
                str(TRAIN_CONFIG), str(data), str(run)]
     r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=1200, cwd=ROOT)
@@ -576,7 +576,7 @@ def test_trained_model_a_lift_of_the_gripper_lifts_the_grasped_part(ros_env, ros
     gripper, ratio 2.4).
 
     What the tiny CI model learns depends on the trainer's version (measured on this
-    episode with three versions of trainer/train.py: grasped part +3.5, +32 and +147 mm,
+    episode with three versions of soma_ros/training/train.py: grasped part +3.5, +32 and +147 mm,
     far part +0.1, +6 and +43 mm; three random models of the same config moved the
     grasped part by -4, -2 and +6 mm and the far part as much or more, in the same
     direction). The thresholds (grasped part > +1 mm and > 1.5x the far part's dz) test

@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from soma_ros.core.calibration import Sim3
-from trainer.config import ConfigError, load_train_config
-from trainer.dataset import EpisodeData
-from trainer.train import frame_terms
+from soma_ros.training.config import ConfigError, load_train_config
+from soma_ros.data.dataset import EpisodeData
+from soma_ros.training.train import frame_terms
 
 torch.set_num_threads(1)
 

@@ -57,7 +57,7 @@ def lift_dataset(tmp_path_factory) -> Path:
 
 
 def _read_state(run: Path):
-    from trainer.train import TRAIN_STATE
+    from soma_ros.training.train import TRAIN_STATE
 
     p = run / TRAIN_STATE
     if not p.is_file():
@@ -134,7 +134,7 @@ def test_resume_after_kill_continues_from_the_last_checkpoint(trained_run):
 def test_validation_episodes_are_training_split_episodes(trained_run, lift_dataset):
     """Validation (which picks the kept checkpoint) uses training-split episodes that take no
     gradient step; the held-out test episodes are neither trained on nor used for selection."""
-    from trainer.dataset import load_dataset
+    from soma_ros.data.dataset import load_dataset
 
     run = trained_run["run"]
     s = trained_run["summary"]
@@ -175,7 +175,7 @@ def test_training_lowers_validation_loss_and_outputs(trained_run):
 
 
 def _follow(sim, store, names, bundle):
-    from trainer.train import gripper_follow, rollout_full
+    from soma_ros.training.train import gripper_follow, rollout_full
 
     out = []
     for name in names:
@@ -194,9 +194,9 @@ def test_trained_model_follows_the_lift(trained_run, lift_dataset):
     from soma_ros.core.checkpoint import load_checkpoint
     from soma_ros.core.robot import RobotModel
     from soma_ros.core.simulator import Simulator
-    from trainer.config import load_train_config
-    from trainer.dataset import load_dataset
-    from trainer.train import EpisodeStore, load_scene
+    from soma_ros.training.config import load_train_config
+    from soma_ros.data.dataset import load_dataset
+    from soma_ros.training.train import EpisodeStore, load_scene
 
     run = trained_run["run"]
     cfg = load_train_config(run / "train_config.yaml")
@@ -228,9 +228,9 @@ def test_another_datasets_episode_of_the_source_name_starts_aligned_to_its_own_f
     frame 0, as every other episode does, not from the training rope's place."""
     from soma_ros.core.robot import RobotModel
     from soma_ros.world import generate_dataset, load_world_config
-    from trainer.config import load_train_config
-    from trainer.dataset import load_dataset
-    from trainer.train import EpisodeStore, load_scene
+    from soma_ros.training.config import load_train_config
+    from soma_ros.data.dataset import load_dataset
+    from soma_ros.training.train import EpisodeStore, load_scene
 
     run = trained_run["run"]
     cfg = load_train_config(run / "train_config.yaml")
@@ -263,9 +263,9 @@ def test_default_coupling_prior_follows_the_lift_before_any_training(trained_run
     held-out lifts, where the untrained free-form model's stay on the table (previous test)."""
     from soma_ros.core.robot import RobotModel
     from soma_ros.core.simulator import Simulator
-    from trainer.config import load_train_config
-    from trainer.dataset import load_dataset
-    from trainer.train import EpisodeStore, load_scene
+    from soma_ros.training.config import load_train_config
+    from soma_ros.data.dataset import load_dataset
+    from soma_ros.training.train import EpisodeStore, load_scene
 
     run = trained_run["run"]
     cfg = load_train_config("tiny")
@@ -321,14 +321,14 @@ def test_at_rest_prefix_carries_no_gradient(lift_dataset):
     the prefix steps, whose contributions cancel only mathematically)."""
     from soma_ros.core.robot import RobotModel
     from soma_ros.core.simulator import Simulator
-    from trainer.config import load_train_config
-    from trainer.dataset import load_dataset
-    from trainer.scene_setup import setup_scene
-    from trainer.train import RolloutLoss, RolloutPlan, contact_frame, rest_reach
+    from soma_ros.training.config import load_train_config
+    from soma_ros.data.dataset import load_dataset
+    from soma_ros.scene.scene_setup import setup_scene
+    from soma_ros.training.train import RolloutLoss, RolloutPlan, contact_frame, rest_reach
 
     cfg = load_train_config("tiny", {"scene": {"num_splats": 300, "photometric_iters": 0}})
     robot = RobotModel.from_config("panda", dtype=torch.float64)
-    from trainer.dataset import prepare_episode
+    from soma_ros.data.dataset import prepare_episode
 
     ref = load_dataset(lift_dataset, "train")[0]
     ep = prepare_episode(ref.bag, robot, cfg.data)
@@ -358,8 +358,8 @@ def test_at_rest_prefix_carries_no_gradient(lift_dataset):
 def test_schedule_plans():
     import numpy as np
 
-    from trainer.config import load_train_config
-    from trainer.train import plan_rollout, stage_at
+    from soma_ros.training.config import load_train_config
+    from soma_ros.training.train import plan_rollout, stage_at
 
     cfg = load_train_config("tiny")
     rng = np.random.default_rng(0)
@@ -380,7 +380,7 @@ def test_schedule_plans():
 
 def test_configs_and_cli_overrides():
     from soma_ros.commands.train import parse_overrides
-    from trainer.config import ConfigError, load_train_config
+    from soma_ros.training.config import ConfigError, load_train_config
 
     paper = load_train_config("paper")
     assert paper.model_config().gnn.latent == 128 and paper.scene.num_splats == 13000
@@ -407,8 +407,8 @@ def test_keep_best_points_keeps_the_lowest_validation_point_distance(lift_datase
     and a resume that changes the criterion starts the choice afresh instead of comparing a loss
     with a distance."""
     from soma_ros.core.checkpoint import read_checkpoint
-    from trainer.config import ConfigError, load_train_config
-    from trainer.train import train
+    from soma_ros.training.config import ConfigError, load_train_config
+    from soma_ros.training.train import train
 
     with pytest.raises(ConfigError, match="run.keep: one of best, best_points, last"):
         load_train_config("tiny", {"run": {"keep": "lowest"}})
@@ -451,8 +451,8 @@ def test_identify_sets_the_physics_priors_coefficient_with_the_lowest_score(lift
     import math
 
     from soma_ros.core.checkpoint import read_checkpoint
-    from trainer.config import ConfigError, load_train_config
-    from trainer.train import train
+    from soma_ros.training.config import ConfigError, load_train_config
+    from soma_ros.training.train import train
 
     for bad in ({"coefficient": "youngs"}, {"values": [1e-8, -1.0]}, {"episodes": 0}, {"extend": -1},
                 {"values": [1e-6], "extend": 2}):
@@ -485,7 +485,7 @@ def test_identify_sets_the_physics_priors_coefficient_with_the_lowest_score(lift
 def test_identification_continues_a_grid_whose_best_value_is_on_its_edge():
     """``identify.extend``: the value beyond a grid's end continues that end's spacing (a ratio for
     compliances and damping, a difference for friction, never below 0); an interior value has none."""
-    from trainer.config import beyond_edge
+    from soma_ros.training.config import beyond_edge
 
     assert beyond_edge([1.0, 3.0, 10.0, 30.0, 100.0], 100.0, True) == pytest.approx(100.0 * 100.0 / 30.0)
     assert beyond_edge([100.0, 1.0, 3.0], 1.0, True) == pytest.approx(1.0 / 3.0)
@@ -499,8 +499,8 @@ def test_the_rod_config_identifies_the_rods_bending_on_a_reference_world_rope(li
     """``tiny_physics_rod``: the prior's nodes are a chain along the recorded rope's centre line and
     its bending compliance (the rod's, rho A / (4 EI)) is identified from the data like the pairs'."""
     from soma_ros.core.effects.physics import PhysicsPrior, build_layout
-    from trainer.config import load_train_config
-    from trainer.train import load_scene, train
+    from soma_ros.training.config import load_train_config
+    from soma_ros.training.train import load_scene, train
 
     over = _identify_over({"coefficient": "bend", "values": [1.0, 100.0], "episodes": 2})
     cfg = load_train_config("tiny_physics_rod", over)
@@ -523,8 +523,8 @@ def test_the_grips_tilt_is_identified_when_the_rod_config_turns_it_on(lift_datas
     """``identify: {coefficient: tilt}`` sets the tilting grip's compliance (physics
     ``grip_tilt_compliance`` > 0) like the bending's; asked of a prior without it, a clear error."""
     from soma_ros.core.checkpoint import read_checkpoint
-    from trainer.config import load_train_config
-    from trainer.train import train
+    from soma_ros.training.config import load_train_config
+    from soma_ros.training.train import train
 
     base = load_train_config("tiny_physics_rod")
     effects = [dict(e) for e in base.model_overrides["effects"]]
@@ -558,8 +558,8 @@ def test_identify_then_sets_a_second_coefficient_at_the_first_ones_choice(lift_d
     episodes with the chosen bending in place; both chosen values are in the checkpoint and the
     record; malformed stages are refused."""
     from soma_ros.core.checkpoint import read_checkpoint
-    from trainer.config import ConfigError, load_train_config
-    from trainer.train import train
+    from soma_ros.training.config import ConfigError, load_train_config
+    from soma_ros.training.train import train
 
     for bad in ({"values": [1.0], "then": [{"values": [1e-9]}]},  # no coefficient
                 {"values": [1.0], "then": [{"coefficient": "stretch", "values": [1e-9], "episodes": 2}]},
@@ -595,7 +595,7 @@ def test_identify_then_sets_a_second_coefficient_at_the_first_ones_choice(lift_d
 
 
 def test_a_non_finite_gradient_skips_the_step_and_keeps_the_weights():
-    from trainer.train import clipped_step
+    from soma_ros.training.train import clipped_step
 
     w = torch.nn.Parameter(torch.tensor([1.0, 2.0]))
     opt = torch.optim.Adam([w], lr=0.1)
@@ -611,7 +611,7 @@ def test_a_non_finite_gradient_skips_the_step_and_keeps_the_weights():
 
 
 def test_divergence_guard_skips_then_rolls_back_then_stops():
-    from trainer.train import DivergenceGuard
+    from soma_ros.training.train import DivergenceGuard
 
     g = DivergenceGuard(in_a_row=3, max_rollbacks=1, lr_factor=0.5)
     assert [g.update(i, s, True) for i, s in enumerate([True, False, False, True, False])] == \
@@ -630,7 +630,7 @@ def test_divergence_guard_skips_then_rolls_back_then_stops():
 def test_divergence_guard_carries_the_count_in_a_row_across_a_resume():
     """A run stopped after skipped steps and resumed goes on counting them: the saved skipped
     iterations that end just before the resume point, after the last rollback."""
-    from trainer.train import DivergenceGuard
+    from soma_ros.training.train import DivergenceGuard
 
     g = DivergenceGuard(in_a_row=5, skipped=[3, 7, 8, 9]).resume_at(10)
     assert g.run == 3
@@ -645,8 +645,8 @@ def test_a_run_of_non_finite_steps_rolls_back_to_the_kept_weights(lift_dataset, 
     the loop goes back to the kept weights (here the untrained ones, the only validation so far)
     with fresh Adam moments and half the learning rate, and finishes; with no rollback allowed it
     stops with the error."""
-    import trainer.train as T
-    from trainer.config import ConfigError, load_train_config
+    import soma_ros.training.train as T
+    from soma_ros.training.config import ConfigError, load_train_config
 
     with pytest.raises(ConfigError, match="max_rollbacks"):
         load_train_config("tiny", {"optim": {"max_rollbacks": -1}})

@@ -337,7 +337,7 @@ def test_an_exploded_object_rejects_the_episode_and_leaves_nothing(cfg, tmp_path
 
 def test_robot_and_wrist_mount_come_from_config(cfg, tmp_path):
     robot = yaml.safe_load((ROOT / "config/world/robot_panda.yaml").read_text())
-    robot["urdf"] = str(ROOT / "soma_ros/data/robots/franka_panda/panda.urdf")
+    robot["urdf"] = str(ROOT / "soma_ros/resources/robots/franka_panda/panda.urdf")
     robot["wrist_camera"] = {"parent": "panda_link8", "xyz": [0.05, 0.02, 0.01], "rpy": [0.1, -0.2, 0.3]}
     (tmp_path / "robot_x.yaml").write_text(yaml.safe_dump(robot))
     world = yaml.safe_load((ROOT / "config/world/default.yaml").read_text())

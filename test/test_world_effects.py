@@ -128,7 +128,7 @@ def test_wind_onset_starts_the_wind_inside_the_carry(cfg, tmp_path):
 
 def test_efforts_feel_a_heavier_rope_but_not_a_softer_one(cfg, tmp_path):
     """/joint_states effort carries the arm's external torques: the wrist force estimated from
-    them (trainer.dataset, RobotModel.external_wrench) pulls down on the lifted rope. A 10x heavier
+    them (soma_ros.data.dataset, RobotModel.external_wrench) pulls down on the lifted rope. A 10x heavier
     rope moves as a 10x softer one does (a welded grasp on a position-controlled arm: only the
     ratio of weight to stiffness shapes the motion), which a camera cannot tell apart
     (docs/discrepancy.md, session 34); its pull on the wrist is 10x the softer one's. Effort noise
@@ -139,7 +139,7 @@ def test_efforts_feel_a_heavier_rope_but_not_a_softer_one(cfg, tmp_path):
     import torch
 
     from soma_ros.core.robot import RobotModel
-    from trainer.dataset import prepare_episode
+    from soma_ros.data.dataset import prepare_episode
 
     c = copy.deepcopy(cfg)
     c.tasks["rope"] = ["lift"]

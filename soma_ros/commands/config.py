@@ -23,12 +23,12 @@ from typing import Any, Iterator
 
 #: (title, config folder, "module:Class", one line on where the file is used)
 FAMILIES: list[tuple[str, str, str, str]] = [
-    ("Training", "config/train", "trainer.config:TrainConfig", "`soma train --config NAME`"),
+    ("Training", "config/train", "soma_ros.training.config:TrainConfig", "`soma train --config NAME`"),
     ("Model", "config/models", "soma_ros.core.config:ModelConfig", "`model:` of a training config"),
     ("Object", "config/objects", "soma_ros.core.config:ObjectConfig", "per-object hierarchy and graph radii"),
-    ("Evaluation", "config/eval", "trainer.evaluate:EvalConfig", "`soma eval`, `soma bench accuracy`"),
-    ("Accuracy benchmark", "(preset)", "trainer.bench_accuracy:BenchConfig", "`soma bench accuracy --preset NAME`"),
-    ("Discrepancy workflow", "config/discrepancy", "trainer.discrepancy:DiscrepancyConfig", "`soma discrepancy`"),
+    ("Evaluation", "config/eval", "soma_ros.evaluation.evaluate:EvalConfig", "`soma eval`, `soma bench accuracy`"),
+    ("Accuracy benchmark", "(preset)", "soma_ros.evaluation.accuracy:BenchConfig", "`soma bench accuracy --preset NAME`"),
+    ("Discrepancy workflow", "config/discrepancy", "soma_ros.discrepancy.workflow:DiscrepancyConfig", "`soma discrepancy`"),
     ("Robot", "config/robots", "soma_ros.core.robot_config:RobotConfig", "`robot:` of a training config, the node"),
     ("Reference world", "config/world", "soma_ros.world.config:WorldConfig", "`soma world --config NAME`"),
 ]

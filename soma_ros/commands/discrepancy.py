@@ -11,7 +11,7 @@ not trained on (default: the checkpoint's training dataset, its episodes outside
 ``none``: no own-error control). Every candidate is calibrated there first, so a term that only
 fixes the model's own error is not named. Writes DIR/report.md, DIR/report.json (named_effect, ranking, gap_before, gap_after), plots, and
 DIR/model/ (the model with the named effect added: a run folder ``soma eval`` accepts).
-See :mod:`trainer.discrepancy` for the method.
+See :mod:`soma_ros.discrepancy.workflow` for the method.
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1") or 1))
-    from trainer.discrepancy import load_discrepancy_config, run_discrepancy
+    from soma_ros.discrepancy.workflow import load_discrepancy_config, run_discrepancy
 
     over = {}
     if args.candidates:

@@ -9,7 +9,7 @@ them), or ``static`` (splats that never move; needs ``--run`` for the scene).
 ``--run`` names the run whose scene and data/alignment settings define the
 initial states (default: the checkpoint's folder). Writes DIR/metrics.json,
 DIR/table.md, DIR/sheets/*.png (and DIR/videos/*.mp4); see
-:mod:`trainer.evaluate` for the protocol.
+:mod:`soma_ros.evaluation.evaluate` for the protocol.
 """
 
 from __future__ import annotations
@@ -60,9 +60,9 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     torch.set_num_threads(1)
-    from trainer.baselines import StaticModel, load_model
-    from trainer.evaluate import EvalConfig, EvalContext, evaluate_models, format_metric
-    from trainer.evaluate_metrics import METRICS, EvalMetricsConfig
+    from soma_ros.evaluation.baselines import StaticModel, load_model
+    from soma_ros.evaluation.evaluate import EvalConfig, EvalContext, evaluate_models, format_metric
+    from soma_ros.evaluation.metrics import METRICS, EvalMetricsConfig
 
     if args.max_episodes is not None and args.max_episodes < 1:
         raise ValueError("--max-episodes must be >= 1")

@@ -40,14 +40,14 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.capture:
-        from trainer.reconstruct import reconstruct_capture
+        from soma_ros.scene.reconstruct import reconstruct_capture
 
         metrics = reconstruct_capture(Path(args.capture), out, holdout=args.holdout_view,
                                       iters=300 if args.iters is None else args.iters,
                                       scale=args.resolution_scale, progress=not args.quiet)
         print(json.dumps(metrics, indent=2))
         return 0
-    from trainer.reconstruct import reconstruct_bag
+    from soma_ros.scene.reconstruct import reconstruct_bag
 
     if args.holdout_view is not None:
         raise ValueError("--holdout-view applies to --capture folders, not to --bag")

@@ -6,7 +6,7 @@ The model is rolled out open loop under the bag's recorded /joint_states from th
 same initial state ``soma eval`` uses for that episode (the run's G_0 aligned to the
 bag's frame-0 object points; when BAG is an episode of the dataset the run was
 trained on, exactly that episode, its name, split and cached initial state), and
-scored by the evaluation harness (:mod:`trainer.evaluate`): the metrics equal
+scored by the evaluation harness (:mod:`soma_ros.evaluation.evaluate`): the metrics equal
 ``soma eval``'s for the same episode.
 
 Writes into OUT:
@@ -146,7 +146,7 @@ def _episode_in_dataset(checkpoint_file: Optional[Path], bag: Path):
     """(dataset dir, EpisodeRef) when ``bag`` is an episode of the dataset the checkpoint was trained on
     (the same folder, not a copy), else None."""
     from soma_ros.core.checkpoint import read_checkpoint
-    from trainer.dataset import load_dataset
+    from soma_ros.data.dataset import load_dataset
 
     if checkpoint_file is None or not checkpoint_file.is_file():
         return None
@@ -366,10 +366,10 @@ def resimulate(checkpoint: str, bag: str | Path, out: str | Path, *, run_dir: Op
     """Resimulate one bag (module docstring); returns the metrics dict written to OUT/metrics.json."""
     import torch
 
-    from trainer.baselines import StaticModel, load_model
-    from trainer.config import load_train_config
-    from trainer.evaluate import EvalConfig, EvalContext, evaluate_models, write_model_report
-    from trainer.evaluate_metrics import EvalMetricsConfig
+    from soma_ros.evaluation.baselines import StaticModel, load_model
+    from soma_ros.training.config import load_train_config
+    from soma_ros.evaluation.evaluate import EvalConfig, EvalContext, evaluate_models, write_model_report
+    from soma_ros.evaluation.metrics import EvalMetricsConfig
 
     from .eval import _run_dir
 
@@ -496,8 +496,8 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     torch.set_num_threads(1)
-    from trainer.evaluate import format_metric
-    from trainer.evaluate_metrics import METRICS
+    from soma_ros.evaluation.evaluate import format_metric
+    from soma_ros.evaluation.metrics import METRICS
 
     cams = [c.strip() for c in args.cameras.split(",") if c.strip()] if args.cameras else None
     if args.cameras is not None and not cams:

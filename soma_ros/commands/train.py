@@ -64,8 +64,8 @@ def parse_overrides(items: list[str]) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from trainer.config import load_train_config
-    from trainer.train import train
+    from soma_ros.training.config import load_train_config
+    from soma_ros.training.train import train
 
     cfg = load_train_config(args.config, parse_overrides(args.set))
     if args.quiet:

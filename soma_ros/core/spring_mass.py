@@ -40,7 +40,7 @@ Model
 
 Fitted parameters (:attr:`SpringMass.parameter_names`): stiffness, dashpot,
 drag, grip stiffness, table friction -- five numbers shared by all episodes of
-an object, fitted by :func:`trainer.baselines.fit_spring_mass` on the training
+an object, fitted by :func:`soma_ros.evaluation.baselines.fit_spring_mass` on the training
 bags' depth (PhysTwin fits to observed 3D points; here the points are the
 back-projected depth of the object pixels).
 """

@@ -141,12 +141,12 @@ class Effect(nn.Module):
     zero_at_rest: ClassVar[bool] = False
     #: typical magnitude of each learnable parameter, in its unit (absent: 1): a fitter that
     #: steps every parameter by a learning rate times this covers a comparable range of force
-    #: (the discrepancy workflow's Adam steps, :func:`trainer.discrepancy.fit_effect`)
+    #: (the discrepancy workflow's Adam steps, :func:`soma_ros.discrepancy.workflow.fit_effect`)
     fit_scale: ClassVar[dict[str, float]] = {}
     #: a physics prior (:mod:`.physics`): the other terms act through it (``physics_modifier``)
     hosts_modifiers: ClassVar[bool] = False
     #: physical range (lo, hi) of a learnable parameter's every element, where one exists (absent:
-    #: unbounded). A fitter keeps its values inside (:func:`trainer.discrepancy.fit_effect`): a value
+    #: unbounded). A fitter keeps its values inside (:func:`soma_ros.discrepancy.workflow.fit_effect`): a value
     #: outside describes another object, not this one with an effect (a rope 10^4 times softer
     #: is a string). Only properties of the object identified by the model have one (mass,
     #: stiffness: within two orders of magnitude, or one for mass, of the identified value); fields,

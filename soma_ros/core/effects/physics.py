@@ -66,7 +66,7 @@ Model (per step t -> t+1; the grasp, and with ``carry_velocity`` a velocity lag,
   factor). At the end of a step whose load exceeds the grip's capacity the object slides out
   of the fingers and falls free: the grasp is lost (a :class:`Grasp` holding nothing) until the
   gripper opens and closes again. An event, not differentiable in r (the workflow's fit finds r
-  on its grid start, ``trainer.discrepancy._grid_start``).
+  on its grid start, ``soma_ros.discrepancy.workflow._grid_start``).
 * ``substeps`` per step. The nodes' displacement over the step gives a velocity change per
   node, carried to the splats by linear-blend skinning (``skin_neighbors`` nearest nodes); the
   term's force makes the fraction ``gain`` of it happen:
@@ -748,7 +748,7 @@ class PhysicsPrior(Effect):
         x, v = self.node_state(lay, ctx)
         cp1 = ctx.control_points
         robot = cp1 is not None and cp1.shape[0] > 0
-        # within reach of a splat (as the trainer's contact frame measures it, trainer.train.rest_reach)
+        # within reach of a splat (as the trainer's contact frame measures it, soma_ros.training.train.rest_reach)
         near = robot and bool(torch.cdist(cp1.detach(), ctx.positions.detach()).min() < self.params.reach)
         if not near and not bool((v != 0).any()) and not mods.pushes():
             return ctx.positions.new_zeros(ctx.positions.shape)  # at rest stays at rest, exactly

@@ -2,7 +2,7 @@
 
 Shared API (stable; the evaluation code builds on it)::
 
-    from trainer.dataset import load_dataset, prepare_episode
+    from soma_ros.data.dataset import load_dataset, prepare_episode
     refs = load_dataset("data/rope_tiny", "train")          # [EpisodeRef(name, bag, split, task, frames)]
     robot = RobotModel.from_config("panda", dtype=torch.float64)
     ep = prepare_episode(refs[0].bag, robot, data_cfg)       # EpisodeData
@@ -51,7 +51,7 @@ wrist_force          [T, 3] f64 or None   force on the end effector, N, sim fram
                                           when the bag has no efforts or the arm < 6 joints)
 ===================  ===================  ==============================================
 
-Training code reads bags only through :mod:`trainer.bags`, which never reads
+Training code reads bags only through :mod:`soma_ros.data.bags`, which never reads
 the evaluation-only ``/world/object_points`` topic; nothing here reads the
 ``*.meta.json`` sidecars.
 """
@@ -71,8 +71,8 @@ from soma_ros.core.cameras import Cameras
 from soma_ros.core.robot import RobotModel
 from soma_ros.core.simulator import RobotAction
 
-from .bags import BagError, Episode, TopicConfig, camera_mount, read_episode, resolve_camera_poses, world_from_base
-from .config import DataConfig, TrainConfig
+from soma_ros.data.bags import BagError, Episode, TopicConfig, camera_mount, read_episode, resolve_camera_poses, world_from_base
+from soma_ros.training.config import DataConfig, TrainConfig
 
 __all__ = [
     "MANIFEST",
@@ -313,7 +313,7 @@ def prepare_episode(
     ``robot``: the rig's robot (float64 recommended). ``cfg``: data section (or a whole
     TrainConfig); defaults if None. ``base_to_sim``: force this robot -> sim similarity
     (e.g. a scene bundle's), else it is computed from the wrist camera as the paper does.
-    Raises :class:`~trainer.bags.BagError` (one line) for unusable bags.
+    Raises :class:`~soma_ros.data.bags.BagError` (one line) for unusable bags.
     """
     if isinstance(cfg, TrainConfig):
         cfg = cfg.data

@@ -5,14 +5,14 @@ For every object (rope, cloth, doll) one command
 1. **data**: generates a reference-world dataset (``soma world``; or reuses the one
    already in ``OUT/data/<object>_<preset>`` if its manifest matches),
 2. **trains** every learned variant on the training episodes with ``soma train``
-   (:func:`trainer.train.train`): ``full``, ``state_only``, ``img_only``, ``no_mrt``
-   (:mod:`trainer.baselines` defines them; :func:`variant_train_config` the
+   (:func:`soma_ros.training.train.train`): ``full``, ``state_only``, ``img_only``, ``no_mrt``
+   (:mod:`soma_ros.evaluation.baselines` defines them; :func:`variant_train_config` the
    config differences); all share the scene set up by ``full`` (same G_0, table,
    hierarchy), so every variant starts every episode from the same state,
 3. **fits** the ``spring_mass`` baseline's parameters on the same training bags,
 4. **evaluates** every variant and ``static`` on the training episodes
    (resimulation) and the held-out episodes (generalization) with
-   :func:`trainer.evaluate.evaluate_models`,
+   :func:`soma_ros.evaluation.evaluate.evaluate_models`,
 5. **writes** ``OUT/table.json`` ``{object: {variant: {split: {metric: value}}}}``,
    ``OUT/table.md`` (one table per object: Resimulation | Generalization x Abs Rel,
    RMSE, PSNR, SSIM, LPIPS, Chamfer, plus by how much ``full`` beats ``static`` and
@@ -53,7 +53,7 @@ from soma_ros.core.config import ConfigError, from_dict, load_object_config, to_
 from soma_ros.core.spring_mass import SpringMassConfig
 from soma_ros.paths import resolve_config
 
-from .baselines import (
+from soma_ros.evaluation.baselines import (
     SPRING_MASS_FILE,
     VARIANTS,
     SpringMassFitConfig,
@@ -62,9 +62,9 @@ from .baselines import (
     load_model,
     save_spring_mass,
 )
-from .config import TrainConfig, load_train_config
-from .evaluate import EvalConfig, EvalContext, METRIC_LABELS, evaluate_models, format_metric
-from .evaluate_metrics import EXTRA_METRICS, METRICS, EvalMetricsConfig
+from soma_ros.training.config import TrainConfig, load_train_config
+from soma_ros.evaluation.evaluate import EvalConfig, EvalContext, METRIC_LABELS, evaluate_models, format_metric
+from soma_ros.evaluation.metrics import EXTRA_METRICS, METRICS, EvalMetricsConfig
 
 __all__ = [
     "OBJECTS",
@@ -187,7 +187,7 @@ def variant_train_config(bench: BenchConfig, obj: str, variant: str) -> TrainCon
     * ``no_mrt``: + no multi-resolution schedule: stage 1 off, all its epochs at the frame rate
       in stage 2 (same number of iterations).
     * ``state_only``: + the model's effects without ``robot``, plus ``wind`` (a learnable constant
-      acceleration field: the autonomous driving term; see :mod:`trainer.baselines`).
+      acceleration field: the autonomous driving term; see :mod:`soma_ros.evaluation.baselines`).
     """
     if variant not in TRAINED_VARIANTS:
         raise ValueError(f"variant '{variant}' is not trained by `soma train` (trained: {', '.join(TRAINED_VARIANTS)})")
@@ -270,7 +270,7 @@ def _checkpoint_complete(run: Path) -> bool:
 
 def _train_variant(cfg: TrainConfig, obj: str, variant: str, data: Path, run: Path, scene: Optional[Path],
                    log, progress: bool) -> dict:
-    from .train import train
+    from soma_ros.training.train import train
 
     cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, progress=progress))
     def info(summary: dict) -> dict:
@@ -409,7 +409,7 @@ def table_markdown(table: dict, bench: BenchConfig, meta: dict) -> str:
             un = om.get("depth_union", {})
             if un:
                 lines.append("- depth RMSE over the union of measured and rendered object (reported, not the "
-                             "headline: trainer/evaluate_metrics.py): " + ", ".join(
+                             "headline: soma_ros/evaluation/metrics.py): " + ", ".join(
                                  f"{v} {format_metric('rmse', un[v].get('test', {}).get('rmse_union'))}"
                                  for v in ("full", "static", "state_only") if v in un))
             lines.append("")
@@ -449,7 +449,7 @@ def _json_safe(x):
 def run_bench(bench: BenchConfig, out: Path, objects: Optional[Sequence[str]] = None, fresh: bool = False,
               progress: bool = True, log: Callable[[str], None] = print) -> dict:
     """Run the whole benchmark into ``out``; returns {"table": ..., "meta": ...}."""
-    from .evaluate import PROTOCOL
+    from soma_ros.evaluation.evaluate import PROTOCOL
 
     t_start = time.time()
     out = Path(out)

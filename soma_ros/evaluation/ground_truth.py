@@ -3,13 +3,13 @@
 The MuJoCo reference world records the deformable object's true vertices on
 ``/world/object_points`` (``sensor_msgs/PointCloud2``, float32 x y z in the
 ``world`` frame, one message per frame, stamped like the camera frames).
-Training code must never read them (:data:`trainer.bags.FORBIDDEN_TOPICS`);
-this module is the one place that does, and only :mod:`trainer.evaluate`
+Training code must never read them (:data:`soma_ros.data.bags.FORBIDDEN_TOPICS`);
+this module is the one place that does, and only :mod:`soma_ros.evaluation.evaluate`
 imports it, to score rollouts with the 3D Chamfer distance.
 
 ``read_ground_truth_points(bag)`` returns ``[T, M, 3]`` float32, one row per
 frame of the episode's frame clock (the first camera's colour stamps, as
-:func:`trainer.bags.read_episode` uses), matched by nearest stamp.
+:func:`soma_ros.data.bags.read_episode` uses), matched by nearest stamp.
 """
 
 from __future__ import annotations
@@ -75,7 +75,7 @@ def read_ground_truth_points(
 
     ``stamps_ns``: the frame clock to align to (e.g. ``EpisodeData.stamps_ns``); default: the colour
     stamps of ``camera`` (default: the alphabetically first ``/<cam>/color/image_raw``, the clock of
-    :func:`trainer.bags.read_episode`). Every frame takes the cloud with the nearest stamp, which must
+    :func:`soma_ros.data.bags.read_episode`). Every frame takes the cloud with the nearest stamp, which must
     lie within ``sync_tolerance_ms``. Raises :class:`GroundTruthError` if the bag has no ground truth
     (e.g. a real recording), if the point count changes, or if the clouds are not in ``frame``.
     """

@@ -10,7 +10,7 @@ included, with ``best_points`` those with the lowest validation point distance, 
 
 One iteration (per rank): pick a training episode, roll the simulator out from
 that episode's initial state (G_0 aligned to its first frame, see
-:func:`trainer.scene_setup.align_splats`) under its recorded actions, render
+:func:`soma_ros.scene.scene_setup.align_splats`) under its recorded actions, render
 every predicted state in every camera and compare with the recorded frame:
 
     L = mean_{frames, cameras} [lam masked-L2 + (1 - lam) D-SSIM](object pixels, robot pixels excluded)
@@ -63,10 +63,10 @@ from soma_ros.core.scene_bundle import SceneBundle
 from soma_ros.core.simulator import SceneContext, SimState, Simulator
 from soma_ros.core.splats import Splats
 
-from .config import TrainConfig, beyond_edge, search_past_edge
-from .dataset import EpisodeData, EpisodeRef, load_dataset, prepare_episode
-from .evaluate_metrics import complete_depth_maps, table_depth
-from .scene_setup import align_splats, setup_scene
+from soma_ros.training.config import TrainConfig, beyond_edge, search_past_edge
+from soma_ros.data.dataset import EpisodeData, EpisodeRef, load_dataset, prepare_episode
+from soma_ros.evaluation.metrics import complete_depth_maps, table_depth
+from soma_ros.scene.scene_setup import align_splats, setup_scene
 
 __all__ = [
     "DistInfo",
@@ -622,10 +622,10 @@ _IDENTIFY_ATTR = {"stretch": "log_stretch", "bend": "log_bend", "grip": "log_gri
 @torch.no_grad()
 def identify_prior(sim: Simulator, store: EpisodeStore, names: Sequence[str], cfg: TrainConfig, criterion: str,
                    dist: Optional[DistInfo] = None, say=print) -> dict:
-    """System identification before training (:class:`~trainer.config.IdentifyConfig`): score the
+    """System identification before training (:class:`~soma_ros.training.config.IdentifyConfig`): score the
     untrained model with the physics prior's coefficient at each grid value on ``names`` (training
     episodes) like a validation; while the best lies on the grid's edge, up to ``extend`` values
-    beyond it (:func:`~trainer.config.search_past_edge`, each kept only while it scores lower); set the best
+    beyond it (:func:`~soma_ros.training.config.search_past_edge`, each kept only while it scores lower); set the best
     (``criterion``: ``val_loss`` or ``points``; ties keep the earlier value) and return
     ``{coefficient, criterion, episodes, chosen, rows}`` (rows beyond the grid: ``extended`` true).
     With ``then``, each further coefficient is identified the same way at the values chosen before

@@ -11,7 +11,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .capture import FitConfig, fit_splats, initial_splats_from_capture, read_capture
+from soma_ros.scene.capture import FitConfig, fit_splats, initial_splats_from_capture, read_capture
 
 
 def _save_rgb(path: Path, rgb01: np.ndarray) -> None:
@@ -76,7 +76,7 @@ def reconstruct_capture(folder: Path, out: Path, holdout: Optional[int] = None, 
 
 def reconstruct_bag(bag: Path, out: Path, robot: str = "panda", object_name: str = "rope", iters: Optional[int] = None,
                     progress: bool = True, config: Optional[str] = None, ply: Optional[Path] = None) -> dict:
-    """Scene set-up from an episode bag (see :mod:`trainer.scene_setup`): G_0 from the fused masked
+    """Scene set-up from an episode bag (see :mod:`soma_ros.scene.scene_setup`): G_0 from the fused masked
     depth of the first frame(s) refined photometrically (or a user ``ply`` already in the sim frame),
     table plane and gravity, robot -> sim transform, hierarchy. Writes the scene bundle into OUT
     (splats.ply, scene.json, hierarchy.pt, setup.json), OUT/metrics.json (masked PSNR of G_0 in every
@@ -88,10 +88,10 @@ def reconstruct_bag(bag: Path, out: Path, robot: str = "panda", object_name: str
     from soma_ros.core.render import render_splats
     from soma_ros.core.robot import RobotModel
 
-    from .config import TrainConfig, load_train_config
-    from .dataset import prepare_episode
-    from .scene_setup import setup_scene, splats_from_points
-    from .train import save_scene
+    from soma_ros.training.config import TrainConfig, load_train_config
+    from soma_ros.data.dataset import prepare_episode
+    from soma_ros.scene.scene_setup import setup_scene, splats_from_points
+    from soma_ros.training.train import save_scene
 
     t0 = time.time()
     cfg = load_train_config(config) if config else TrainConfig().validate()

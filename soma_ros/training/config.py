@@ -34,7 +34,7 @@ import yaml
 
 from soma_ros.core.config import ConfigError, from_dict, to_dict
 
-from .bags import TopicConfig
+from soma_ros.data.bags import TopicConfig
 from soma_ros.paths import resolve_config
 
 __all__ = [
@@ -56,7 +56,7 @@ __all__ = [
 @dataclass
 class TopicNames(TopicConfig):
     """Topic names of the rig (``{cam}`` = camera name): the fields of
-    :class:`trainer.bags.TopicConfig`, validated as a config section."""
+    :class:`soma_ros.data.bags.TopicConfig`, validated as a config section."""
 
     def validate(self, where: str = "data.topics") -> None:
         for f in dataclasses.fields(self):
@@ -111,7 +111,7 @@ class DataConfig:
 
 @dataclass
 class SceneConfig:
-    """Scene set-up from the first frame(s) of an episode (:mod:`trainer.scene_setup`).
+    """Scene set-up from the first frame(s) of an episode (:mod:`soma_ros.scene.scene_setup`).
 
     ``num_splats``: target number of splats of G_0 (voxel size found by bisection
     on the fused object points; the paper uses 13,000). ``frames``: frames whose
@@ -164,12 +164,12 @@ class LossConfig:
     on object pixels (robot-occluded pixels excluded) + ``momentum_weight`` * L_mom
     + ``depth_weight`` * masked L1 depth (metres; 0 = the paper's image-only loss) on
     ``depth_region``: "object" = measured object pixels only; "scored" = the evaluation's
-    rule (:func:`trainer.evaluate_metrics.complete_depth_maps`): both maps completed with the
+    rule (:func:`soma_ros.evaluation.metrics.complete_depth_maps`): both maps completed with the
     table-plane depth, scored on object pixels or where the prediction renders (alpha > 0.5),
     robot pixels excluded -- so splats rendered where the camera sees the table cost too
     + ``silhouette_weight`` * rendered alpha vs object mask off the object
     + ``points_weight`` * mean distance observed object point -> nearest splat (m)
-    (see :func:`trainer.train.frame_terms`).
+    (see :func:`soma_ros.training.train.frame_terms`).
 
     ``camera_reduce``: "camera" = each camera's image loss on its own object pixels,
     then the mean over cameras (the paper sums L_img over images; a camera where the

@@ -1,4 +1,4 @@
-"""Plots and markdown of the discrepancy workflow (:mod:`trainer.discrepancy`).
+"""Plots and markdown of the discrepancy workflow (:mod:`soma_ros.discrepancy.workflow`).
 
 DIR/residual_time.png      3D residual and per-camera depth RMSE over time, per episode
 DIR/residual_clusters.png  per-cluster residual displacement: |r| over (time, cluster) and a

@@ -6,7 +6,7 @@ same for every model) and the scene (gravity, table, dt), it yields the splat
 means and covariances of every frame, open loop, frame 0 first.
 
 ==============  ======================================================================
-variant         what it is (how it is trained: :mod:`trainer.bench_accuracy`)
+variant         what it is (how it is trained: :mod:`soma_ros.evaluation.accuracy`)
 ==============  ======================================================================
 full            the SoMA simulator, trained with ``soma train`` (masked image loss +
                 momentum regulariser, two-stage multi-resolution schedule)
@@ -47,7 +47,7 @@ from soma_ros.core.simulator import SceneContext, Simulator
 from soma_ros.core.splats import Splats
 from soma_ros.core.spring_mass import SpringMass, SpringMassConfig
 
-from .dataset import EpisodeData
+from soma_ros.data.dataset import EpisodeData
 
 __all__ = [
     "VARIANTS",
@@ -101,7 +101,7 @@ class StaticModel(RolloutModel):
 
 class SimulatorModel(RolloutModel):
     """A trained :class:`Simulator` rolled out at the frame rate from the episode's initial state,
-    under the recorded actions (as :func:`trainer.train.rollout_full`), or without actions
+    under the recorded actions (as :func:`soma_ros.training.train.rollout_full`), or without actions
     (``use_actions=False``; automatic for a model without the ``robot`` effect)."""
 
     kind = "simulator"

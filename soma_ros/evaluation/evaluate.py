@@ -2,11 +2,11 @@
 
 For every episode of the split, every model starts from the same initial
 state -- G_0 of the run's scene aligned to the episode's first frame
-(:class:`trainer.train.EpisodeStore`, exactly what training and validation
+(:class:`soma_ros.training.train.EpisodeStore`, exactly what training and validation
 use) -- and is rolled out at the frame rate under the episode's recorded joint
 states (the robot actions in the sim frame), with no feedback from the
 recording. Each predicted frame is rendered in every recorded camera and
-scored (:mod:`trainer.evaluate_metrics` documents the protocol: masked PSNR /
+scored (:mod:`soma_ros.evaluation.metrics` documents the protocol: masked PSNR /
 SSIM / LPIPS, table-completed depth AbsRel / RMSE, Chamfer against the
 evaluation-only ground-truth object points).
 
@@ -39,11 +39,11 @@ import torch
 from soma_ros.core.render import render
 from soma_ros.core.robot import RobotModel
 
-from .baselines import RolloutModel
-from .config import TrainConfig, load_train_config
-from .dataset import EpisodeRef, load_dataset
-from .evaluate_gt import GroundTruthError, read_ground_truth_points
-from .evaluate_metrics import (
+from soma_ros.evaluation.baselines import RolloutModel
+from soma_ros.training.config import TrainConfig, load_train_config
+from soma_ros.data.dataset import EpisodeRef, load_dataset
+from soma_ros.evaluation.ground_truth import GroundTruthError, read_ground_truth_points
+from soma_ros.evaluation.metrics import (
     LOWER_IS_BETTER,
     METRICS,
     EvalMetricsConfig,
@@ -52,8 +52,8 @@ from .evaluate_metrics import (
     score_frame,
     table_depth,
 )
-from .evaluate_viz import EpisodeSheet, EpisodeVideo, sample_frames
-from .train import EpisodeStore, load_scene
+from soma_ros.evaluation.viz import EpisodeSheet, EpisodeVideo, sample_frames
+from soma_ros.training.train import EpisodeStore, load_scene
 
 __all__ = [
     "EvalConfig",

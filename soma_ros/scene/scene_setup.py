@@ -12,7 +12,7 @@ Steps of :func:`setup_scene` (paper Sec. 3 "Scene Initialization via R2S Mapping
    median nearest-neighbour spacing.
 3. **Photometric refinement** with our renderer on those frames (colours,
    opacities, scales, orientations; masked L2 + D-SSIM + silhouette, robot pixels
-   ignored) -- :func:`trainer.capture.fit_splats`.
+   ignored) -- :func:`soma_ros.scene.capture.fit_splats`.
 4. **Table plane** by RANSAC (:func:`fit_table_plane`) on non-object, non-robot
    depth within ``table_radius`` of the object; **gravity** = g times the plane
    normal oriented by the paper's sign rule with a fixed camera's view direction
@@ -45,9 +45,9 @@ from soma_ros.core.hierarchy import Hierarchy, build_hierarchy, complete_linkage
 from soma_ros.core.scene_bundle import CameraSpec, SceneBundle
 from soma_ros.core.splats import Splats
 
-from .capture import CaptureViews, FitConfig, fit_splats
-from .config import SceneConfig
-from .dataset import EpisodeData
+from soma_ros.scene.capture import CaptureViews, FitConfig, fit_splats
+from soma_ros.training.config import SceneConfig
+from soma_ros.data.dataset import EpisodeData
 
 __all__ = [
     "SceneSetup",

@@ -6,7 +6,7 @@ add it to the model and show the gap shrink (issue #8).
 Steps (every one uses only the measured bags and the model; the evaluation-only
 ground truth -- ``/world/object_points``, the ``.meta.json`` sidecars -- is never
 read by the decision; Chamfer in the before/after gap is the one exception and
-is computed by the evaluation engineer's scorer, :mod:`trainer.evaluate`):
+is computed by the evaluation engineer's scorer, :mod:`soma_ros.evaluation.evaluate`):
 
 1. **Resimulate** every measured episode open loop (initial state: G_0 of the
    run's scene aligned to the episode's frame 0, as training and evaluation do)
@@ -65,7 +65,7 @@ is computed by the evaluation engineer's scorer, :mod:`trainer.evaluate`):
    score before/after on the held-out episodes with :func:`evaluate_models`
    (depth RMSE, PSNR, SSIM, AbsRel, Chamfer) plus the workflow's own 3D residual.
 5. **Report**: DIR/report.md, DIR/report.json (named_effect, ranking,
-   gap_before, gap_after, ...), plots (see :mod:`trainer.discrepancy_report`).
+   gap_before, gap_after, ...), plots (see :mod:`soma_ros.discrepancy.report`).
 
 The threshold: ``min_explained`` (default 0.1) is a practical-significance floor,
 set before any test: a term fitted on other episodes that does not remove at
@@ -98,9 +98,9 @@ from soma_ros.core.render import render
 from soma_ros.core.simulator import SceneContext, SimulationDiverged, Simulator
 from soma_ros.core.splats import Splats
 
-from .config import load_train_config, search_past_edge
-from .dataset import EpisodeData
-from .evaluate_metrics import EvalMetricsConfig, score_frame, table_depth
+from soma_ros.training.config import load_train_config, search_past_edge
+from soma_ros.data.dataset import EpisodeData
+from soma_ros.evaluation.metrics import EvalMetricsConfig, score_frame, table_depth
 
 __all__ = ["DiscrepancyConfig", "load_discrepancy_config", "run_discrepancy", "DEFAULT_CANDIDATES",
            "EpisodeObs", "point_residual", "bootstrap_explained", "decide", "rank_candidates",
@@ -243,7 +243,7 @@ def _observed(ep: EpisodeData, t: int, max_points: int) -> torch.Tensor:
 
 
 def episode_obs(ctx, ref, cfg: DiscrepancyConfig) -> tuple[EpisodeObs, EpisodeData]:
-    """The workflow's view of one episode of an :class:`~trainer.evaluate.EvalContext` (and the episode)."""
+    """The workflow's view of one episode of an :class:`~soma_ros.evaluation.evaluate.EvalContext` (and the episode)."""
     ep = ctx.store.episode(ref.name)
     frames = list(range(cfg.frame_stride, ep.num_frames, cfg.frame_stride))
     load = None
@@ -1073,9 +1073,9 @@ def _json_safe(x):
 def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[DiscrepancyConfig] = None,
                     scene_dir: Optional[Path] = None, log: Callable[[str], None] = print) -> dict:
     """The whole workflow (module docstring); returns the report dict (also DIR/report.json)."""
-    from .baselines import SimulatorModel
-    from .discrepancy_report import write_report
-    from .evaluate import EvalConfig, EvalContext, evaluate_models
+    from soma_ros.evaluation.baselines import SimulatorModel
+    from soma_ros.discrepancy.report import write_report
+    from soma_ros.evaluation.evaluate import EvalConfig, EvalContext, evaluate_models
 
     cfg = (cfg or DiscrepancyConfig()).validate()
     t0 = time.time()
@@ -1255,8 +1255,8 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
         "config": dataclasses.asdict(cfg),
         "metric_notes": {
             "points": "workflow's 3D residual: mean distance observed object point -> nearest simulated splat (m)",
-            "rmse": "depth RMSE (m), eval protocol (trainer.evaluate), held-out episodes",
-            "chamfer": "EVALUATION ONLY: vs /world/object_points by trainer.evaluate; never used by the decision",
+            "rmse": "depth RMSE (m), eval protocol (soma_ros.evaluation.evaluate), held-out episodes",
+            "chamfer": "EVALUATION ONLY: vs /world/object_points by soma_ros.evaluation.evaluate; never used by the decision",
         },
         "seconds": round(time.time() - t0, 1),
     }
