@@ -379,26 +379,6 @@ def test_a_free_rope_gains_all_of_gravity_per_step_only_from_the_end_velocity():
     assert 0.5 * exact < runs[False] < 0.65 * exact
 
 
-def test_stretch_per_mass_lets_a_heavier_rope_stretch_as_much_as_a_lighter_one():
-    """A stretchy rod (stretch compliance 1e-7, soft bending) hanging from its top: 10x heavier
-    (PhysicsMods.mass) it hangs about a third longer with the stretch compliance absolute, and about as
-    long as the lighter one with ``stretch_per_mass``; without a mass change the two are the same."""
-    lengths = {}
-    for per_mass in (False, True):
-        p = _rod_params(stretch_compliance=1e-7, bend_compliance=20.0, stretch_per_mass=per_mass)
-        pts, m = _chain()
-        lay = build_layout(pts, m, UP, torch.tensor(0.0), p)
-        for k in (0.0, 9.0):
-            x = _run(lay, p, lay.rest.clone(), 40, _top_grip(lay), True, PhysicsMods(mass=torch.tensor(k)))
-            lengths[(per_mass, k)] = float(x[:, 2].max() - x[:, 2].min())
-    assert lengths[(False, 0.0)] == pytest.approx(lengths[(True, 0.0)], abs=1e-6)
-    assert lengths[(False, 0.0)] > 0.31  # it stretches (0.29 m at rest)
-    grows = lengths[(False, 9.0)] - lengths[(False, 0.0)]
-    assert grows > 0.05 and abs(lengths[(True, 9.0)] - lengths[(True, 0.0)]) < 0.2 * grows
-    with pytest.raises(ConfigError, match="stretch_per_mass"):
-        PhysicsPrior(_rod_params(stretch_per_mass="yes"))
-
-
 def test_carry_velocity_lets_a_released_rope_fall_at_the_prior_s_gain_of_gravity():
     """In the simulator: a rope lifted clear of the table and let go falls 0.61x as far as free fall in
     8 steps with the prior starting each step from the splats' mean velocity, 0.84x with
@@ -601,42 +581,6 @@ def test_the_closing_axis_comes_from_the_jaws_open_or_touching_and_is_none_when_
     assert closing_axis(_pinch((0.0, 0.0), 0.6, 0.01, line)[0]) is not None  # apart: the line between them
 
 
-def test_a_pinching_grasp_gathers_the_held_nodes_onto_the_plane_between_the_pads():
-    pts, m = _sheet(n=600, size=0.2)
-    corner = (0.08, 0.08)
-    cps, axis = _pinch(corner, 0.8, 0.002)
-    hung = {}
-    for gather in (1.0, 0.5, 0.0):
-        p = _params(num_nodes=48, attach_radius=0.04, grasp_gather=gather)
-        lay = build_layout(pts, m, UP, torch.tensor(0.0), p)
-        x = lay.rest.clone()
-        g = grasp_nodes(lay, x, cps, p)
-        assert g is not None and int(g.held.sum()) >= 3
-        centre = cps.mean(dim=0)
-        along = (x - centre) @ axis
-        # the component along the closing axis is scaled by the gather, the rest is the node's offset
-        assert torch.allclose(g.offset @ axis, gather * along, atol=1e-6)
-        across = (x - centre) - along[:, None] * axis
-        assert torch.allclose(g.offset - (g.offset @ axis)[:, None] * axis, across, atol=1e-6)
-        # lifted 0.15 m by the corner and held: the pinched nodes end on the plane between the pads
-        up = torch.tensor([0.0, 0.0, 0.15 / 20.0 / DT])
-        lifted = _run(lay, p, x, 20, cps, closed=True, cp_velocity=up)
-        lifted = _run(lay, p, lifted, 10, cps + torch.tensor([0.0, 0.0, 0.15]), closed=True)
-        top = cps.mean(dim=0) + torch.tensor([0.0, 0.0, 0.15])
-        held_spread = ((lifted[g.held] - top) @ axis).abs().max()
-        hung[gather] = float(held_spread)
-    assert hung[0.0] < 2e-3 < hung[1.0]  # pinched flat vs held where they lay
-    assert hung[0.0] < hung[0.5] < hung[1.0]
-
-
-def test_grasp_gather_outside_zero_to_one_is_a_config_error():
-    with pytest.raises(ConfigError, match="grasp_gather"):
-        PhysicsPrior(_params(grasp_gather=1.5))
-    with pytest.raises(ConfigError, match="grasp_gather"):
-        PhysicsPrior(_params(grasp_gather=-0.1))
-
-
-# --------------------------------------------------------------------------- the rod's bending
 def _rod_params(**kw) -> PhysicsPrior.Params:
     return PhysicsPrior.Params(**{"num_nodes": 40, "substeps": 16, "solver": "newton", "newton_iterations": 1,
                                   "bend_model": "rod", "grip_compliance": 1e-11, **kw})

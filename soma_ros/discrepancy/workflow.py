@@ -138,7 +138,6 @@ class DiscrepancyConfig:
     bootstrap: int = 2000
     alpha: float = 0.05  # one-sided: the lower bound is the alpha quantile
     min_explained: float = 0.1
-    finetune_iters: int = 0  # extra Adam steps on the winner's parameters over the fit episodes
     grid_start: list[float] = field(default_factory=list)  # before Adam: try the start value plus these
     # multiples of each parameter's typical magnitude (Effect.fit_scale), one parameter element at a time,
     # and start from the best on grid_episodes fit episodes (a response that stays flat until a threshold,
@@ -1207,14 +1206,8 @@ def run_discrepancy(checkpoint: Path, data: Path, out: Path, cfg: Optional[Discr
     named, ranking, decision, fits, models, samples = rank_candidates(sim, fit_obs, held_obs, base, scene, cfg, log,
                                                                       ref_obs, ref_scene, fit_res, ref_res, held_load)
 
-    # ---- step 4: add, (fine-tune), save, re-evaluate on the held-out episodes
-    after = sim
-    if named != "none":
-        after = models[named]
-        if cfg.finetune_iters > 0:
-            after, _, values = fit_effect(after, named, fit_obs, scene, cfg, cfg.finetune_iters, log, key=named,
-                                          objective=objective_at_start(after, fit_obs, scene, cfg)[0])
-            fits[named]["parameters_finetuned"] = values
+    # ---- step 4: add, save, re-evaluate on the held-out episodes
+    after = models[named] if named != "none" else sim
     model_dir = out / "model"
     model_dir.mkdir(parents=True, exist_ok=True)
     extra = dict(read_checkpoint(ck)["extra"])

@@ -40,9 +40,7 @@ Model (per step t -> t+1; the grasp, and with ``carry_velocity`` a velocity lag,
   a substep below its floor kept the push as velocity, and a rope landing on the table bounced).
 * **Gripper** (the action at t+1; control points move linearly from t within the step): when
   the gripper closes, the nodes within ``attach_radius`` of the control points' centroid are
-  grasped, each held at its offset to that centroid (compliance ``grip_compliance``), its
-  component along the fingers' closing axis (:func:`closing_axis`) times ``grasp_gather`` (1: held
-  where it was; 0: on the plane between the pads, as a pinch gathers a cloth)
+  grasped, each held at its offset to that centroid (compliance ``grip_compliance``)
   until the gripper opens (:class:`Grasp`, carried in ``SimState.aux``); free nodes are pushed out
   of ``contact_radius`` around every control point. A **tilting grip** (``grip_tilt_compliance`` >
   0, Newton solver, the hard grip): the held section may also turn about the closing axis, on a
@@ -310,18 +308,12 @@ def closing_axis(cp: torch.Tensor) -> Optional[torch.Tensor]:
 
 def grasp_nodes(lay: PhysicsLayout, x: torch.Tensor, cp: torch.Tensor, p: "PhysicsPrior.Params") -> Optional[Grasp]:
     """The grasp a gripper closing now makes: the nodes within ``attach_radius`` of the control
-    points' centroid, each held at its offset to it, the offset's component along the closing
-    axis times ``p.grasp_gather`` (None: nothing there)."""
+    points' centroid, each held at its offset to it (None: nothing there)."""
     centre = cp.mean(dim=0)
     held = (x.detach() - centre).norm(dim=-1) <= p.attach_radius  # [K]
     if not bool(held.any()):
         return None
-    off = (x - centre).detach()  # [K, 3]
-    if p.grasp_gather < 1.0:
-        axis = closing_axis(cp.detach())
-        if axis is not None:  # the pads pinch what they hold onto the plane between them
-            off = off - (1.0 - p.grasp_gather) * (off @ axis)[:, None] * axis
-    return Grasp(held, off)
+    return Grasp(held, (x - centre).detach())
 
 
 def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torch.Tensor, plane_normal: torch.Tensor,
@@ -372,8 +364,6 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
     if stiff is not None:
         alpha = alpha / stiff
     w_inv = 1.0 / (1.0 + mods.mass.clamp_min(-0.9)) if mods.mass is not None else x.new_ones(())  # per unit mass
-    if p.stretch_per_mass and mods.mass is not None:  # a heavier object stretches as much (mass-relative constraints)
-        alpha = torch.where(lay.bend, alpha, alpha * w_inv)
     a_grip = coef["grip"] / h2
     if grasp is not None and cp0 is None:
         raise ValueError("pbd_step: a grasp needs the control points")
@@ -638,7 +628,6 @@ class PhysicsPrior(Effect):
         newton_iterations: int = 2  # Gauss-Newton steps per substep (solver: newton)
         relaxation: float = 1.5
         attach_radius: float = 0.02  # m around the control points' centroid
-        grasp_gather: float = 1.0  # held nodes' offsets along the closing axis times this (0: pinched flat)
         contact_radius: float = 0.006  # m around each control point
         contact_offset_max: float = 0.02  # m: floors of the nodes resting on the table
         grip_threshold: float = 0.5  # gripper state below it: closed
@@ -659,12 +648,8 @@ class PhysicsPrior(Effect):
         # each step starts from the nodes' velocities at the end of the prior's previous step (the
         # splats' finite-difference velocity plus the prior's own difference between its end and mean
         # velocity, carried in the state), not from the mean velocity over the step, which gains only
-        # half of gravity's velocity per step (pbd_step; docs/discrepancy.md, session 41)
+        # half of gravity's velocity per step (pbd_step)
         carry_velocity: bool = False
-        # the stretch compliance per unit node mass, as the bending's: a heavier object (PhysicsMods.mass)
-        # stretches as much as a lighter one, as the reference world's rope does (its edge constraints are
-        # soft in proportion to the mass they act on; sessions 40-41); False: a heavier one stretches more
-        stretch_per_mass: bool = False
 
     def __init__(self, params, *, attr_dim: int = 0) -> None:
         super().__init__(params, attr_dim=attr_dim)
@@ -692,11 +677,8 @@ class PhysicsPrior(Effect):
         if not p.grip_tilt_compliance >= 0.0 or (p.grip_tilt_compliance > 0.0 and p.solver != "newton"):
             raise ConfigError(f"effect physics: grip_tilt_compliance must be >= 0, and > 0 needs solver 'newton'; "
                               f"got {p.grip_tilt_compliance} with {p.solver!r}")
-        for name in ("carry_velocity", "stretch_per_mass"):
-            if not isinstance(getattr(p, name), bool):
-                raise ConfigError(f"effect physics: {name} must be true or false, got {getattr(p, name)!r}")
-        if not 0.0 <= p.grasp_gather <= 1.0:
-            raise ConfigError(f"effect physics: grasp_gather must be in [0, 1], got {p.grasp_gather}")
+        if not isinstance(p.carry_velocity, bool):
+            raise ConfigError(f"effect physics: carry_velocity must be true or false, got {p.carry_velocity!r}")
         if not 0.0 <= p.friction < 5.0 or p.contact_offset_max < 0:
             raise ConfigError("effect physics: friction in [0, 5) and contact_offset_max >= 0 required")
         f = lambda v: nn.Parameter(torch.tensor(math.log(v)))  # noqa: E731
