@@ -49,6 +49,20 @@ schedule:
 ```
 
 `soma config show train/NAME` prints a config with its bases applied.
+
+## Defaults that differ between layers
+
+- **Passive-object rule**: off in the core (`dynamics.passive_friction: null`), so in training
+  and evaluation, because every model is trained and scored as it predicts; on in the node
+  (`passive_friction: 0.5`) and the discrepancy workflow, which run a trained model open-ended
+  beside a robot, where a learned model's small spurious forces would otherwise add up.
+- **Settling**: never in the engine (`LiveSimulator(settle_s=0)`, so in `soma resim` and `soma
+  eval`: a rollout is scored as predicted); after 2 s in the node (`settle_time_s`), which runs
+  without end.
+- **Robot coupling**: the `robot` effect's `form` defaults to `mlp`, the paper's free-form
+  module, so the `cpu` and `paper` model configs are the paper's model and older checkpoints
+  load unchanged; the shipped `tiny*` training configs select `form: coupling`, which learns in
+  a CPU budget (docs/design_decisions.md).
 """
 
 
