@@ -35,7 +35,7 @@ FAMILIES: list[tuple[str, str, str, str]] = [
 
 HEADER = """# Configuration reference
 
-Generated from the config dataclasses by `soma config doc`; `test/test_config_doc.py`
+Generated from the config dataclasses by `soma config doc`; `test/commands/test_config_doc.py`
 keeps this page equal to the code. Every config is a YAML file loaded strictly into
 these dataclasses: an unknown key or a value of the wrong type is an error that names
 the key.

@@ -14,7 +14,7 @@ from soma_ros.core.render import RenderConfig, render_splats
 
 torch.set_num_threads(1)
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_rope_4view"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "real_rope_4view"
 needs_data = pytest.mark.skipif(not DATA.exists(), reason="shared rope data not present")
 ROPE_PNG = Path("/tmp/soma_rope_render.png")
 

@@ -29,7 +29,7 @@ from soma_ros.world import (  # noqa: E402
 )
 from soma_ros.world.transforms import quat_to_mat, rotation_angle_deg  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 W, H = 160, 120
 

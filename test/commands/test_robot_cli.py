@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PANDA = ROOT / "soma_ros" / "data" / "robots" / "franka_panda" / "panda.urdf"
 ARX5 = ROOT / "soma_ros" / "data" / "robots" / "arx5" / "X5.urdf"
 

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 TEST_EPISODE = "rope_000"  # the dataset's one test episode (seed 3)
 SIM_TOPIC_KINDS = ("image_raw", "depth", "camera_info")
 

@@ -199,7 +199,7 @@ def test_plane_fit_recovers_noisy_plane_with_outliers() -> None:
 
 def test_plane_fit_real_rope_capture() -> None:
     """Real 4-camera capture (rope lying on a table, world up = -z): gravity comes out +z."""
-    data = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_rope_4view"
+    data = Path(__file__).resolve().parents[3] / "shared" / "data" / "real_rope_4view"
     if not (data / "pcd.ply").is_file():
         pytest.skip("real_rope_4view capture not available")
     raw = (data / "pcd.ply").read_bytes()

@@ -17,7 +17,7 @@ import torch
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _soma(*args: str, timeout: int = 600) -> subprocess.CompletedProcess:

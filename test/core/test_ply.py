@@ -12,7 +12,7 @@ from soma_ros.core.splats import SH_C0, Splats
 
 torch.set_num_threads(1)
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_rope_4view"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "real_rope_4view"
 
 
 def random_splats(n=50, k_rest=15, n_attr=5, seed=0):

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from soma_ros.commands.config import reference
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_the_configuration_reference_matches_the_code():

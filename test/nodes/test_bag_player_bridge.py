@@ -126,7 +126,7 @@ def test_conversion_passes_rclpy_field_checks():
         """
     )
     env = dict(os.environ, ROS_PYTHON_CHECK_FIELDS="1")
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     r = subprocess.run([sys.executable, "-c", script], env=env, cwd=root, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and f"CHECKED {len(SAMPLES)}" in r.stdout, r.stdout + r.stderr
 

@@ -35,7 +35,7 @@ import torch
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 KILL_AFTER_ITERATION = 30  # two epochs of the tiny config: the second checkpoint
 
 
