@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(1)
     from soma_ros.evaluation.baselines import StaticModel, load_model
     from soma_ros.evaluation.evaluate import EvalConfig, EvalContext, evaluate_models, format_metric
-    from soma_ros.evaluation.metrics import METRICS, EvalMetricsConfig
+    from soma_ros.core.scoring import METRICS, EvalMetricsConfig
 
     if args.max_episodes is not None and args.max_episodes < 1:
         raise ValueError("--max-episodes must be >= 1")

@@ -369,7 +369,7 @@ def resimulate(checkpoint: str, bag: str | Path, out: str | Path, *, run_dir: Op
     from soma_ros.evaluation.baselines import StaticModel, load_model
     from soma_ros.training.config import load_train_config
     from soma_ros.evaluation.evaluate import EvalConfig, EvalContext, evaluate_models, write_model_report
-    from soma_ros.evaluation.metrics import EvalMetricsConfig
+    from soma_ros.core.scoring import EvalMetricsConfig
 
     from .eval import _run_dir
 
@@ -497,7 +497,7 @@ def run(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(1)
     from soma_ros.evaluation.evaluate import format_metric
-    from soma_ros.evaluation.metrics import METRICS
+    from soma_ros.core.scoring import METRICS
 
     cams = [c.strip() for c in args.cameras.split(",") if c.strip()] if args.cameras else None
     if args.cameras is not None and not cams:

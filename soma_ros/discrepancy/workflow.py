@@ -100,7 +100,7 @@ from soma_ros.core.splats import Splats
 
 from soma_ros.training.config import load_train_config, search_past_edge
 from soma_ros.data.dataset import EpisodeData
-from soma_ros.evaluation.metrics import EvalMetricsConfig, score_frame, table_depth
+from soma_ros.core.scoring import EvalMetricsConfig, score_frame, table_depth
 
 __all__ = ["DiscrepancyConfig", "load_discrepancy_config", "run_discrepancy", "DEFAULT_CANDIDATES",
            "EpisodeObs", "point_residual", "bootstrap_explained", "decide", "rank_candidates",

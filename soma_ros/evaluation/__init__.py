@@ -1,6 +1,6 @@
-"""Scoring models against recordings (`soma eval`, `soma bench accuracy`).
+"""Scoring models against recordings (`soma eval`, `soma bench accuracy`); the per-frame
+metrics and how they are masked are :mod:`soma_ros.core.scoring`.
 
-* :mod:`.metrics` -- per-frame metrics and how they are masked;
 * :mod:`.baselines` -- the trained model and the baselines rolled out beside it;
 * :mod:`.evaluate` -- open-loop rollouts of a dataset split and the report;
 * :mod:`.ground_truth` -- the reference world's object points (evaluation only);

@@ -64,7 +64,7 @@ from soma_ros.evaluation.baselines import (
 )
 from soma_ros.training.config import TrainConfig, load_train_config
 from soma_ros.evaluation.evaluate import EvalConfig, EvalContext, METRIC_LABELS, evaluate_models, format_metric
-from soma_ros.evaluation.metrics import EXTRA_METRICS, METRICS, EvalMetricsConfig
+from soma_ros.core.scoring import EXTRA_METRICS, METRICS, EvalMetricsConfig
 
 __all__ = [
     "OBJECTS",
@@ -409,7 +409,7 @@ def table_markdown(table: dict, bench: BenchConfig, meta: dict) -> str:
             un = om.get("depth_union", {})
             if un:
                 lines.append("- depth RMSE over the union of measured and rendered object (reported, not the "
-                             "headline: soma_ros/evaluation/metrics.py): " + ", ".join(
+                             "headline: soma_ros/core/scoring.py): " + ", ".join(
                                  f"{v} {format_metric('rmse', un[v].get('test', {}).get('rmse_union'))}"
                                  for v in ("full", "static", "state_only") if v in un))
             lines.append("")

@@ -6,7 +6,7 @@ state -- G_0 of the run's scene aligned to the episode's first frame
 use) -- and is rolled out at the frame rate under the episode's recorded joint
 states (the robot actions in the sim frame), with no feedback from the
 recording. Each predicted frame is rendered in every recorded camera and
-scored (:mod:`soma_ros.evaluation.metrics` documents the protocol: masked PSNR /
+scored (:mod:`soma_ros.core.scoring` documents the protocol: masked PSNR /
 SSIM / LPIPS, table-completed depth AbsRel / RMSE, Chamfer against the
 evaluation-only ground-truth object points).
 
@@ -43,7 +43,7 @@ from soma_ros.evaluation.baselines import RolloutModel
 from soma_ros.training.config import TrainConfig, load_train_config
 from soma_ros.data.dataset import EpisodeRef, load_dataset
 from soma_ros.evaluation.ground_truth import GroundTruthError, read_ground_truth_points
-from soma_ros.evaluation.metrics import (
+from soma_ros.core.scoring import (
     LOWER_IS_BETTER,
     METRICS,
     EvalMetricsConfig,

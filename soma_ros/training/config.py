@@ -164,7 +164,7 @@ class LossConfig:
     on object pixels (robot-occluded pixels excluded) + ``momentum_weight`` * L_mom
     + ``depth_weight`` * masked L1 depth (metres; 0 = the paper's image-only loss) on
     ``depth_region``: "object" = measured object pixels only; "scored" = the evaluation's
-    rule (:func:`soma_ros.evaluation.metrics.complete_depth_maps`): both maps completed with the
+    rule (:func:`soma_ros.core.scoring.complete_depth_maps`): both maps completed with the
     table-plane depth, scored on object pixels or where the prediction renders (alpha > 0.5),
     robot pixels excluded -- so splats rendered where the camera sees the table cost too
     + ``silhouette_weight`` * rendered alpha vs object mask off the object

@@ -65,7 +65,7 @@ from soma_ros.core.splats import Splats
 
 from soma_ros.training.config import TrainConfig, beyond_edge, search_past_edge
 from soma_ros.data.dataset import EpisodeData, EpisodeRef, load_dataset, prepare_episode
-from soma_ros.evaluation.metrics import complete_depth_maps, table_depth
+from soma_ros.core.scoring import complete_depth_maps, table_depth
 from soma_ros.scene.scene_setup import align_splats, setup_scene
 
 __all__ = [

@@ -184,7 +184,7 @@ def test_metrics_equal_the_evaluation_harness(resim_out, tiny_run, tmp_path):
     from soma_ros.cli import main
     from soma_ros.evaluation.baselines import load_model
     from soma_ros.evaluation.evaluate import EvalConfig, EvalContext, evaluate_models
-    from soma_ros.evaluation.metrics import METRICS
+    from soma_ros.core.scoring import METRICS
 
     data, run = tiny_run
     out, _, _ = resim_out

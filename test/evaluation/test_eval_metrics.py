@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from soma_ros.core.cameras import Cameras, look_at
-from soma_ros.evaluation.metrics import (
+from soma_ros.core.scoring import (
     FrameScores,
     aggregate_episodes,
     aggregate_frames,

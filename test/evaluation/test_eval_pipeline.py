@@ -16,7 +16,7 @@ from soma_ros.core import metrics as M
 from soma_ros.core.render import render
 from soma_ros.core.config import ConfigError
 from soma_ros.evaluation.accuracy import BenchConfig, TrainSection, WorldSection, load_bench_config, run_bench, variant_train_config
-from soma_ros.evaluation.metrics import METRICS, chamfer_distance, complete_depth_maps, table_depth
+from soma_ros.core.scoring import METRICS, chamfer_distance, complete_depth_maps, table_depth
 
 torch.set_num_threads(1)
 

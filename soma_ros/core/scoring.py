@@ -56,8 +56,8 @@ from typing import Iterable, Optional, Sequence
 
 import torch
 
-from soma_ros.core import metrics as M
-from soma_ros.core.cameras import Cameras
+from . import metrics as M
+from .cameras import Cameras
 
 __all__ = [
     "METRICS",
