@@ -53,7 +53,8 @@ from soma_ros.core.scoring import (
     table_depth,
 )
 from soma_ros.evaluation.viz import EpisodeSheet, EpisodeVideo, sample_frames
-from soma_ros.training.train import EpisodeStore, load_scene
+from soma_ros.scene.files import load_scene
+from soma_ros.training.train import EpisodeStore
 
 __all__ = [
     "EvalConfig",

@@ -91,7 +91,7 @@ def reconstruct_bag(bag: Path, out: Path, robot: str = "panda", object_name: str
     from soma_ros.training.config import TrainConfig, load_train_config
     from soma_ros.data.dataset import prepare_episode
     from soma_ros.scene.scene_setup import setup_scene, splats_from_points
-    from soma_ros.training.train import save_scene
+    from soma_ros.scene.files import save_scene
 
     t0 = time.time()
     cfg = load_train_config(config) if config else TrainConfig().validate()

@@ -66,6 +66,7 @@ from soma_ros.core.splats import Splats
 from soma_ros.training.config import TrainConfig, beyond_edge, search_past_edge
 from soma_ros.data.dataset import EpisodeData, EpisodeRef, load_dataset, prepare_episode
 from soma_ros.core.scoring import complete_depth_maps, table_depth
+from soma_ros.scene.files import load_scene, save_scene
 from soma_ros.scene.scene_setup import align_splats, setup_scene
 
 __all__ = [
@@ -693,35 +694,6 @@ def _atomic_write_text(path: Path, text: str) -> None:
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(text)
     os.replace(tmp, path)
-
-
-def save_scene(folder: Path, bundle: SceneBundle, hierarchy: Hierarchy, info: Optional[dict] = None) -> Path:
-    """Scene bundle + ``hierarchy.pt`` (+ ``setup.json``) in ``folder``."""
-    folder = Path(folder)
-    bundle.save(folder)
-    _atomic_torch_save(hierarchy.to_dict(), folder / "hierarchy.pt")
-    if info is not None:
-        _atomic_write_text(folder / "setup.json", json.dumps(info, indent=1, default=float))
-    return folder
-
-
-def load_scene(folder: Path) -> tuple[SceneBundle, Hierarchy]:
-    """(bundle, hierarchy) from a folder written by :func:`save_scene` (the hierarchy is rebuilt
-    from the splats when ``hierarchy.pt`` is absent, e.g. a hand-made bundle)."""
-    folder = Path(folder)
-    bundle = SceneBundle.load(folder)
-    hp = folder / "hierarchy.pt"
-    if hp.is_file():
-        hier = Hierarchy.from_dict(torch.load(hp, weights_only=True))
-        if hier.sizes[0] != len(bundle.splats):
-            raise ValueError(f"{hp}: hierarchy is for {hier.sizes[0]} splats, the bundle has {len(bundle.splats)}")
-    else:
-        from soma_ros.core.hierarchy import build_hierarchy
-
-        oc = load_object_config(bundle.object_name)
-        hier = build_hierarchy(bundle.splats.means.float(), bundle.splats.mass.float(), oc.hierarchy.thresholds,
-                               oc.hierarchy.seed_fraction)
-    return bundle, hier
 
 
 class RunLog:
