@@ -15,7 +15,7 @@ figures behind the README's note on long live runs. The divergence guard is off
 is on as the node runs it (``--passive-friction 0.5``; negative = off): not on steps where
 the model's own terms act with the gripper closed (``--exempt-trained closed``,
 ``DynamicsConfig.passive_exempt`` with ``passive_exempt_closed``); ``none``: on every step (the
-node before session 13); ``always``: exempt with the gripper open too.
+node's former rule); ``always``: exempt with the gripper open too.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """The live engine without ROS: JointStateFilter and LiveSimulator.
 
-LiveSimulator runs the session's untrained run (random-weight `cpu` model,
+LiveSimulator runs the test run's untrained run (random-weight `cpu` model,
 2,000-splat synthetic rope, robot base on the table at (0, 0, 0.75)). What a
 random model can show: the initial state is an exact fixed point, so with the
 gripper out of the robot effect's reach (radius 5 cm) nothing moves, bit for

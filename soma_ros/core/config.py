@@ -207,7 +207,7 @@ class DynamicsConfig:
     ``direct_splats`` (off in every shipped config): without a splat head the splats follow their
     fine cluster rigidly; with it, the direct effects' acceleration in excess of the cluster's also
     moves each splat within its cluster (:mod:`.simulator`, "Direct effects"). Measured on the rod
-    prior (docs/discrepancy.md, session 41): a lifted rope's long arm then hangs as the prior alone
+    prior: a lifted rope's long arm then hangs as the prior alone
     has it (up to 6 cm lower than with rigid fine clusters), but the held-out depth RMSE gets worse.
     """
 

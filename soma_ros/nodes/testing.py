@@ -51,7 +51,7 @@ class RosProcess:
         self.log = tempfile.NamedTemporaryFile(prefix=f"soma_{self.name.replace('/', '_')}_", suffix=".log", delete=False)
         self.proc = subprocess.Popen(
             [sys.executable, "-m", module, *args], env=env, stdout=self.log, stderr=subprocess.STDOUT,
-            start_new_session=True,
+            process_group=0,
         )
 
     def output(self) -> str:

@@ -111,7 +111,7 @@ def test_unbound_model_roundtrips(tmp_path):
 
 
 def test_an_effect_parameter_added_later_keeps_its_config_value_with_a_warning(tmp_path):
-    """A checkpoint written before an effect gained a parameter (gripper_slip's weaken, session 20)
+    """A checkpoint written before an effect gained a parameter (gripper_slip's weaken)
     still loads: the new parameter keeps the value its spec gives (0: no change), with a warning
     naming it; a missing network weight is still an error (test above)."""
     sim = Simulator(load_model_config("cpu"))

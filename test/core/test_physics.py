@@ -173,10 +173,10 @@ def test_modifiers_slip_stiffness_and_mass_change_the_held_rope_as_their_names_s
                          ids=["jacobi", "newton_rod", "newton_rod_tilt"])
 def test_a_rigidly_held_rope_k_times_heavier_moves_as_one_k_times_softer(solver):
     """Under the hard grip only the ratio of weight to stiffness shapes a held rope (the reference
-    world measures a 10x heavier and a 10x softer rope alike, docs/discrepancy.md session 34), so
-    mass_scale's x k and stiffness_scale's x 1/k give the same motion: the hold and its tilt are
-    compliances per unit node mass, like the rod's bending. Before session 39 the hold was not: a
-    heavier rope loosened the hard grip, and the mass term drooped less than the world's heavier rope."""
+    world measures a 10x heavier and a 10x softer rope alike), so mass_scale's x k and
+    stiffness_scale's x 1/k give the same motion: the hold and its tilt are compliances per unit
+    node mass, like the rod's bending. A hold that is not would loosen under a heavier rope, and the
+    mass term would droop less than the world's heavier rope."""
     p = _params(stretch_compliance=1e-6, grip_compliance=3e-6, **solver)  # the grip tiny_physics_rod identifies
     pts, m = _chain()
     lay = build_layout(pts, m, UP, torch.tensor(10.0), p)  # the table far below
@@ -253,8 +253,7 @@ def test_the_table_stops_a_landing_rope_that_starts_a_step_below_its_floor_witho
     """A rope landing on the table can start a step a little below its floor, moving down (the
     simulator makes the fraction ``gain`` of the prior's velocity change, the network adds its
     own): here 3 mm at 0.4 m/s. The table pushes it back out as a position correction, not a
-    velocity: it stays on the table. With ``inelastic_table: false`` (the contact before session
-    21) the push leaves the first substep at 3 mm / h upwards and the rope jumps 0.16 m, as the
+    velocity: it stays on the table. With ``inelastic_table: false`` the push leaves the first substep at 3 mm / h upwards and the rope jumps 0.16 m, as the
     rope released by a friction-limited grip did in the workflow's rollouts."""
     pts, m = _flat_rope()
     top = {}

@@ -4,13 +4,13 @@ The test plays the robot: it publishes /joint_states from its own rclpy context
 (LiveProbe, benchmarks/bench_live.py) and checks what the node publishes. Each
 test gets its own ROS_DOMAIN_ID with LOCALHOST discovery (conftest fixtures).
 
-Scene: the session's untrained run (random-weight `cpu` model, 2,000-splat
+Scene: the test run's untrained run (random-weight `cpu` model, 2,000-splat
 synthetic rope, 160x120, cam_front fixed + cam_wrist on panda_hand). Its initial
 state is an exact fixed point, so while the gripper stays out of the robot
 effect's reach (5 cm) the published splats are bit-exactly the initial ones --
 a sharp probe for "bad input was not used". The trained-model lift test trains
 a tiny model with the trainer (``config/train/tiny.yaml``) on a tiny reference-
-world rope dataset once per session.
+world rope dataset once per test run.
 """
 
 from __future__ import annotations

@@ -131,7 +131,7 @@ def test_efforts_feel_a_heavier_rope_but_not_a_softer_one(cfg, tmp_path):
     them (soma_ros.data.dataset, RobotModel.external_wrench) pulls down on the lifted rope. A 10x heavier
     rope moves as a 10x softer one does (a welded grasp on a position-controlled arm: only the
     ratio of weight to stiffness shapes the motion), which a camera cannot tell apart
-    (docs/discrepancy.md, session 34); its pull on the wrist is 10x the softer one's. Effort noise
+    (docs/discrepancy.md); its pull on the wrist is 10x the softer one's. Effort noise
     never moves the motion."""
     import copy
 

@@ -271,8 +271,8 @@ class Wind(Effect):
     field is fully on from then and ramps in over the ``rise`` seconds before it (C1 smoothstep); 0
     (default) blows from the first step. A fan switched on, a door opened, a gust: a disturbance
     that starts during the episode, which a field from the start could only imitate by pushing the
-    resting object all along. The discrepancy workflow does not fit it (docs/discrepancy.md,
-    session 33: set by hand at a gust's true onset, it did not halve that gust's gap)."""
+    resting object all along. The discrepancy workflow does not fit it: set by hand at a gust's
+    true onset, it did not halve that gust's gap (docs/design_decisions.md)."""
 
     fit_scale = {"accel": 9.81}  # m/s^2: a force field comparable to the object's weight
     FORMS = ("pressure", "field")

@@ -30,14 +30,14 @@ Model (per step t -> t+1; the grasp, and with ``carry_velocity`` a velocity lag,
   from the rest shape (:func:`_newton_project`). A distance pair's length changes only to second
   order in a small bend, so the pairs' bending has no stiffness at small angles and grows with the
   bend; a rope held near one end then leaves the fingers straighter and kinks further out than an
-  elastic rod does (docs/discrepancy.md, session 27).
+  elastic rod does.
 * **Gravity** from the scene, still-air damping ``exp(-damping h)`` per substep.
 * **Table**: a node may not go below its initial height above the plane (capped at
   ``contact_offset_max``, so nodes resting on the table stay where they were reconstructed);
   pushed below it is projected back and its tangential displacement is reduced by Coulomb
   friction ``mu x depth``. The projection is a position correction: the node leaves the substep
-  with no velocity away from the table (``inelastic_table``, session 21; before, a node that began
-  a substep below its floor kept the push as velocity, and a rope landing on the table bounced).
+  with no velocity away from the table (``inelastic_table``; otherwise a node that begins a
+  substep below its floor keeps the push as velocity, and a rope landing on the table bounces).
 * **Gripper** (the action at t+1; control points move linearly from t within the step): when
   the gripper closes, the nodes within ``attach_radius`` of the control points' centroid are
   grasped, each held at its offset to that centroid (compliance ``grip_compliance``)
@@ -46,7 +46,7 @@ Model (per step t -> t+1; the grasp, and with ``carry_velocity`` a velocity lag,
   0, Newton solver, the hard grip): the held section may also turn about the closing axis, on a
   rotational spring, as a rope pinched between two pads turns under a long arm's weight (the
   reference world's soft grasp constraints tilt its held section about 19 degrees when the rope
-  is held 3 to 5 of 25 vertices from an end; docs/discrepancy.md, sessions 27 and 30).
+  is held 3 to 5 of 25 vertices from an end).
   A **compliant grip** (``PhysicsMods.grip`` = g > 0, gripper_slip's ``loosen``) replaces the held
   nodes' hard constraint by a spring-damper to their place in the fingers that carries the whole
   object: hanging rigidly in it, the object would be a critically damped oscillator of time
@@ -328,7 +328,7 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
     that starts the next step from the mean velocity (as the simulator's finite-difference
     velocities are) gains only half of gravity's velocity per step: a free object falls at about
     g / 2 and a hanging one swings too slowly, while every static shape is unchanged
-    (:class:`PhysicsPrior.Params` ``carry_velocity``; docs/discrepancy.md, session 41).
+    (:class:`PhysicsPrior.Params` ``carry_velocity``).
 
     ``coef``: the learnable coefficients as tensors (``stretch``, ``bend``, ``grip`` compliances,
     ``damping``, ``friction``); ``cp0`` / ``cp1`` [P, 3]: the control points at t and t+1 (None:
@@ -344,9 +344,8 @@ def pbd_step(lay: PhysicsLayout, x: torch.Tensor, v: torch.Tensor, gravity: torc
     inertia and the hold's stiffness alike, so a heavier object is held as rigidly, and a hanging
     object k times heavier moves exactly as one with 1/k of the stretch and bending stiffness (as
     for an elastic rope, where only the ratio of weight to stiffness shapes a rigidly held
-    object; session 39, docs/discrepancy.md). The reference world's rope bends so, but its stretch
-    comes from soft constraints whose stiffness follows the mass, so a heavier world rope stretches
-    about as much as a lighter one (sessions 40-41).
+    object). The reference world's rope bends so, but its stretch comes from soft constraints whose
+    stiffness follows the mass, so a heavier world rope stretches about as much as a lighter one.
     Differentiable in x, v, coef, mods and the grasp's offsets."""
     mods = mods or PhysicsMods()
     kept = grasp  # returned as it is: a lost grasp (holding nothing) stays lost while the gripper is closed
