@@ -205,7 +205,7 @@ def _malformed_clouds():
     neg = np.frombuffer(bytes(base.data), np.float32).copy().reshape(800, 16)
     neg[9, 3] = -0.01  # scale_0
     return [
-        ("empty cloud", variant(width=0, data=b""), "neither splats nor ply_path"),
+        ("empty cloud", variant(width=0, data=b""), "neither splats (0 points) nor a ply_path"),
         ("missing opacity field", variant(fields=[f for f in base.fields if f.name != "opacity"]), "lacks required fields: opacity"),
         ("NaN means", variant(data=nan.tobytes()), "non-finite"),
         ("truncated data", variant(data=bytes(base.data)[:-100]), "expected"),
@@ -234,7 +234,7 @@ def test_reset_with_a_new_scene_and_refused_resets(ros_env, untrained_run, probe
             assert resp.num_splats == 3000, name
             assert resp.message.startswith("reset refused:") and reason in resp.message, (name, resp.message)
         resp = probe.reset(ply_path=str(tmp_path / "nope.ply"))
-        assert not resp.success and "scene file not found" in resp.message and resp.num_splats == 3000
+        assert not resp.success and "no scene this node may read" in resp.message and resp.num_splats == 3000
 
         # the old scene keeps running: same splats, steps go on
         n0 = probe.count[("splats",)]

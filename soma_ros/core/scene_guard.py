@@ -162,7 +162,7 @@ def check_cloud_layout(cloud: Any, limits: SceneLimits, required: Sequence[str],
         raise SceneRefused(f"row_step {row} is not width * point_step ({step * w}): row padding is not supported")
     size = len(cloud.data)
     if size != n * step:
-        raise SceneRefused(f"data holds {size} bytes, width * height * point_step is {n * step}")
+        raise SceneRefused(f"data holds {size} bytes, expected width * height * point_step = {n * step}")
     spans = []
     names = [str(f.name) for f in cloud.fields]
     if len(set(names)) != len(names):
