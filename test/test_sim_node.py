@@ -313,8 +313,9 @@ def test_bad_joint_states_are_rejected_logged_and_survived(ros_env, untrained_ru
     """NaN/inf values, wrong lengths, unknown names, duplicates, stamps going backwards and
     stamps far ahead: each rejected and counted, logged (throttled), never used (the rope,
     which moves as soon as the gripper reaches it, stays bit-exactly still), and the
-    correctly stamped stream that follows is taken again."""
-    with sim_node(ros_env, untrained_run, "render_rate_hz:=0.0", "splat_rate_hz:=10.0") as node:
+    correctly stamped stream that follows is taken again (input_rate_hz above the burst's rate:
+    every message is taken, none dropped for a newer one)."""
+    with sim_node(ros_env, untrained_run, "render_rate_hz:=0.0", "splat_rate_hz:=10.0", "input_rate_hz:=2000.0") as node:
         _started(probe, node, kin["hover"], key=("splats",))
         assert probe.hold(kin["hover"], lambda: _accepted(probe.last_status()) >= 5, 30)
         st0 = probe.last_status()
