@@ -19,7 +19,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Mapping, Optional, Sequence
 
 import numpy as np
 import torch
@@ -56,19 +56,50 @@ class JointStateFilter:
 
     With ``max_future_s`` set, ``push(..., now_ns=clock)`` also rejects stamps more
     than that far ahead of the receiver's clock: accepted, such a stamp would make
-    every later (correctly stamped) message look older and lock the stream out.
+    every later (correctly stamped) message look older and lock the stream out. A
+    rejected message never moves the newest stamp that later ones are compared with.
+
+    ``limits`` ({joint: (lower, upper)}, e.g. :func:`joint_limits` of the robot) with
+    ``limit_margin`` (joint units: rad or m): positions outside [lower - margin,
+    upper + margin] are rejected; joints without an entry are not checked.
+
+    Every call does work bounded by the number of joints, never by the history or the
+    message rate. :meth:`count_sequence` counts messages that never arrived (dropped
+    upstream because a newer one replaced them) from the publisher's sequence numbers.
     """
 
-    def __init__(self, required: Sequence[str], history: int = 64, max_future_s: Optional[float] = None) -> None:
+    def __init__(self, required: Sequence[str], history: int = 64, max_future_s: Optional[float] = None,
+                 limits: Optional[Mapping[str, tuple[float, float]]] = None, limit_margin: float = 0.0) -> None:
         if not required:
             raise ValueError("JointStateFilter needs at least one required joint")
+        if limit_margin < 0:
+            raise ValueError(f"JointStateFilter: limit_margin must be >= 0, got {limit_margin}")
         self.required = list(required)
         self.max_future_ns = None if max_future_s is None else int(max_future_s * 1e9)
+        lim = dict(limits or {})
+        self._lo = np.array([lim[r][0] - limit_margin if r in lim else -np.inf for r in self.required])
+        self._hi = np.array([lim[r][1] + limit_margin if r in lim else np.inf for r in self.required])
+        self.limit_margin = float(limit_margin)
         self._hist: deque[tuple[int, np.ndarray]] = deque(maxlen=history)
         self._lock = threading.Lock()
         self.received = 0
         self.rejected = 0
+        self.dropped = 0
+        self._last_seq: Optional[int] = None
         self.last_reason = ""
+
+    def count_sequence(self, seq: Optional[int]) -> int:
+        """Note a taken message's publication sequence number; returns the messages skipped since
+        the previous one (added to ``dropped``). A number that does not increase (another
+        publisher, or one that restarted) starts counting afresh and counts nothing."""
+        if seq is None or seq <= 0:
+            return 0
+        gap = 0
+        if self._last_seq is not None and seq > self._last_seq:
+            gap = seq - self._last_seq - 1
+            self.dropped += gap
+        self._last_seq = seq
+        return gap
 
     def push(self, names: Sequence[str], positions: Sequence[float], stamp_ns: int,
              now_ns: Optional[int] = None) -> np.ndarray:
@@ -103,6 +134,12 @@ class JointStateFilter:
         if not np.all(ok):
             bad = [r for r, v in zip(self.required, ok) if not v]
             raise JointStateRejected(f"non-finite values for: {', '.join(bad)}")
+        out = (vec < self._lo) | (vec > self._hi)
+        if np.any(out):
+            i = int(np.flatnonzero(out)[0])
+            raise JointStateRejected(
+                f"{int(out.sum())} positions outside the joint limits by more than {self.limit_margin:g}: "
+                f"{self.required[i]} = {vec[i]:.4g} (allowed {self._lo[i]:.4g}..{self._hi[i]:.4g})")
         with self._lock:
             if self._hist and stamp_ns < self._hist[-1][0]:
                 raise JointStateRejected(
@@ -136,6 +173,21 @@ class JointStateFilter:
             s1, v1 = self._hist[i]
         w = 0.0 if s1 == s0 else (stamp_ns - s0) / (s1 - s0)
         return (1 - w) * v0 + w * v1
+
+
+def joint_limits(robot: RobotModel, names: Sequence[str]) -> dict[str, tuple[float, float]]:
+    """{joint: (lower, upper)} for the ``names`` that have limits: the URDF's for its joints
+    (continuous joints have none), the gripper config's range for external gripper joints."""
+    out: dict[str, tuple[float, float]] = {}
+    ext = dict(robot.config.gripper.external_joints) if robot.config.gripper else {}
+    for n in names:
+        j = robot.urdf.joints.get(n)
+        if j is not None and j.type != "continuous" and j.lower is not None and j.upper is not None:
+            out[n] = (float(j.lower), float(j.upper))
+        elif n in ext:
+            lo, hi = ext[n]
+            out[n] = (float(min(lo, hi)), float(max(lo, hi)))
+    return out
 
 
 @dataclass
@@ -218,15 +270,36 @@ class LiveSimulator:
         self.reset(bundle.splats)
 
     # ------------------------------------------------------------------ scene
-    def reset(self, splats: Splats) -> int:
-        """Swap in a new initial scene atomically; returns its splat count."""
+    def prepare(self, splats: Splats) -> Optional[tuple]:
+        """The hierarchy and static graphs a reset to ``splats`` needs, built without touching the
+        running simulator (so a step need not wait for them); None when the splat count is the
+        bound one (nothing to build). Pass the result to :meth:`reset`."""
+        from .core.graph import build_static_graphs
+        from .core.hierarchy import build_hierarchy
+
+        sim = self.sim
+        if sim.hierarchy is not None and sim.hierarchy.sizes[0] == len(splats):
+            return None
+        cfg = sim.config
+        with torch.no_grad():
+            hier = build_hierarchy(splats.means.detach().cpu().float(), splats.mass.detach().cpu().float(),
+                                   cfg.hierarchy.thresholds, cfg.hierarchy.seed_fraction)
+            graphs = build_static_graphs(hier.rest_positions, cfg.graph.k, cfg.graph.radii, backend=cfg.graph.knn_backend)
+        return hier, graphs
+
+    def reset(self, splats: Splats, prepared: Optional[tuple] = None) -> int:
+        """Swap in a new initial scene atomically; returns its splat count. ``prepared``: what
+        :meth:`prepare` returned for these splats (built here when not given)."""
         splats.validate()
         sim = self.sim
         with self._sim_lock, torch.no_grad():
             bound = (sim.hierarchy, sim.graphs, sim.splat_attrs)
             try:
                 if sim.hierarchy is None or sim.hierarchy.sizes[0] != len(splats):
-                    sim.bind(splats)
+                    if prepared is not None and prepared[0].sizes[0] == len(splats):
+                        sim.bind(splats, *prepared)
+                    else:
+                        sim.bind(splats)
                 state = sim.init_state(splats, self.scene)
             except BaseException:
                 # a failure after a rebind must not leave the simulator bound to the new

@@ -14,6 +14,7 @@ the far end stays" is a trained-model property, tested in test_sim_node.py.)
 from __future__ import annotations
 
 import math
+import re
 import threading
 import time
 
@@ -457,3 +458,51 @@ def test_render_fixed_and_mounted_cameras(fresh, poser):
         live.render(state, template, None)
     with pytest.raises(ValueError, match="unknown camera"):
         LiveSimulator(live.sim, live.bundle, live.robot, camera_names=["nope"])
+
+
+def test_filter_refuses_positions_outside_the_joint_limits_by_more_than_the_margin():
+    f = JointStateFilter(REQUIRED, limits={REQUIRED[0]: (-1.0, 1.0)}, limit_margin=0.05)
+    f.push(REQUIRED, _vec(1.04), 100)  # inside the margin: a driver's small overshoot
+    for v in (1.06, -1.2, 1e30):
+        with pytest.raises(JointStateRejected, match=re.escape(f"1 positions outside the joint limits by more than "
+                                                               f"0.05: {REQUIRED[0]} = {v:.4g} (allowed -1.05..1.05)")):
+            f.push(REQUIRED, [v] + list(_vec(0.0))[1:], 200)
+    assert f.rejected == 3 and np.array_equal(f.sample(), np.array(_vec(1.04)))
+    with pytest.raises(ValueError, match="limit_margin"):
+        JointStateFilter(REQUIRED, limit_margin=-1.0)
+
+
+def test_joint_limits_come_from_the_urdf_and_the_gripper_config():
+    from soma_ros.core.robot import RobotModel
+    from soma_ros.live import joint_limits
+
+    robot = RobotModel.from_config("panda")
+    lim = joint_limits(robot, ["panda_joint1", "panda_joint4", "panda_finger_joint1", "not_a_joint"])
+    j1 = robot.urdf.joints["panda_joint1"]
+    assert lim["panda_joint1"] == (j1.lower, j1.upper) and j1.lower < 0 < j1.upper
+    assert set(lim) == {"panda_joint1", "panda_joint4", "panda_finger_joint1"}
+    fj = robot.urdf.joints["panda_finger_joint1"]
+    assert lim["panda_finger_joint1"] == (fj.lower, fj.upper)
+    assert "not_a_joint" not in lim
+
+
+def test_a_future_stamp_beyond_the_tolerance_does_not_lock_the_stream_out():
+    """0.9 s ahead with a 0.1 s tolerance: refused, and the correctly stamped messages that
+    follow are all taken (the reference stamp did not move)."""
+    f = JointStateFilter(REQUIRED, max_future_s=0.1)
+    now = 10**18
+    f.push(REQUIRED, _vec(0.0), now, now_ns=now)
+    with pytest.raises(JointStateRejected, match="0.900 s ahead"):
+        f.push(REQUIRED, _vec(5.0), now + 900_000_000, now_ns=now)
+    for i in range(1, 30):
+        t = now + i * 33_000_000
+        f.push(REQUIRED, _vec(float(i)), t, now_ns=t)
+    assert f.rejected == 1 and f.newest_stamp_ns() == now + 29 * 33_000_000
+
+
+def test_dropped_messages_are_counted_from_sequence_numbers():
+    f = JointStateFilter(REQUIRED)
+    assert [f.count_sequence(s) for s in (1, 2, 5, 6, 106)] == [0, 0, 2, 0, 99]
+    assert f.dropped == 101
+    assert f.count_sequence(3) == 0 and f.count_sequence(4) == 0 and f.dropped == 101  # another publisher: afresh
+    assert f.count_sequence(None) == 0 and f.count_sequence(0) == 0

@@ -27,6 +27,15 @@ numeric property types, and plain point clouds (``x y z`` with optional
     uint8 rot w, x, y, z encoded as clip(q * 128 + 128, 0, 255)
 
 Only SH degree 0 survives ``.splat``; mass and attrs are not stored.
+
+Reading and writing go through ``plyfile``. Before any vertex data is read,
+the header is parsed here with bounds (at most 64 KiB, a vertex count within
+``max_splats`` when given) and checked against the file's length: a binary
+file must hold exactly the bytes its header announces, an ASCII file at least
+two bytes per announced value. So a 400-byte file that claims 10^8 vertices is
+refused at once, before anything is allocated. Written headers follow the
+graphdeco layout that the SIBR viewer expects (``format`` on line 2, ``element
+vertex N`` on line 3, no comments), at SH degree 0 to 3.
 """
 
 from __future__ import annotations
@@ -34,14 +43,16 @@ from __future__ import annotations
 import os
 import re
 from pathlib import Path
-from typing import Optional, Union
+from typing import BinaryIO, Optional, Union
 
 import numpy as np
+import plyfile
 import torch
 
 from .splats import SH_C0, Splats, rgb_to_sh_dc
 
-__all__ = ["read_ply", "write_ply", "read_splat", "write_splat", "load_splats", "PlyError"]
+__all__ = ["read_ply", "write_ply", "read_splat", "write_splat", "load_splats", "PlyError", "PlyHeader",
+           "read_ply_header", "sh_degree_of", "MAX_HEADER_BYTES"]
 
 PathLike = Union[str, os.PathLike]
 
@@ -70,98 +81,144 @@ class PlyError(ValueError):
 
 
 # ------------------------------------------------------------------ PLY parsing
-def _parse_header(f, path):
-    first = f.readline()
-    if first.strip() != b"ply":
-        raise PlyError(f"{path}: not a PLY file (first line {first[:20]!r})")
+MAX_HEADER_BYTES = 65536
+_FLOAT_TYPES = ("f4", "f8")
+
+
+class PlyHeader:
+    """A parsed, bounded PLY header: format, elements [(name, count, [(prop, dtype | ('list', ct, it))])],
+    the header's byte length and the file's total size."""
+
+    def __init__(self, fmt: str, elements: list, header_bytes: int, file_bytes: int) -> None:
+        self.format = fmt
+        self.elements = elements
+        self.header_bytes = header_bytes
+        self.file_bytes = file_bytes
+
+    def element(self, name: str):
+        for e in self.elements:
+            if e[0] == name:
+                return e
+        return None
+
+    @property
+    def vertex_count(self) -> int:
+        e = self.element("vertex")
+        return 0 if e is None else e[1]
+
+    def property_types(self, name: str = "vertex") -> dict[str, object]:
+        e = self.element(name)
+        return {} if e is None else dict(e[2])
+
+
+def _parse_header(f: BinaryIO, path) -> PlyHeader:
+    """Parse the header of the open file ``f`` (positioned at 0) without reading past it."""
+    head = f.read(MAX_HEADER_BYTES)
+    if not head.startswith(b"ply\n") and not head.startswith(b"ply\r\n"):
+        raise PlyError(f"{path}: not a PLY file (no 'ply' magic line)")
+    end = head.find(b"end_header")
+    if end < 0:
+        raise PlyError(f"{path}: PLY header has no end_header within {MAX_HEADER_BYTES} bytes")
+    nl = head.find(b"\n", end)
+    if nl < 0:
+        raise PlyError(f"{path}: PLY header has no end_header line")
+    header_bytes = nl + 1
     fmt = None
-    elements = []  # list of (name, count, [(prop_name, dtype or ('list', ct, it))])
-    n_lines = 0
-    while True:
-        line = f.readline()
-        n_lines += 1
-        if not line:
-            raise PlyError(f"{path}: PLY header has no end_header")
-        if n_lines > 100000:
-            raise PlyError(f"{path}: PLY header too long")
-        tok = line.decode("ascii", errors="replace").strip().split()
+    elements: list = []
+    for no, raw in enumerate(head[:header_bytes].split(b"\n")[1:], start=2):
+        tok = raw.decode("ascii", errors="replace").strip().split()
         if not tok:
             continue
         key = tok[0]
         if key == "format":
             if len(tok) < 2 or tok[1] not in ("ascii", "binary_little_endian", "binary_big_endian"):
-                raise PlyError(f"{path}: unsupported PLY format line {line.strip()!r}")
+                raise PlyError(f"{path}: unsupported PLY format on header line {no}")
             fmt = tok[1]
         elif key in ("comment", "obj_info"):
             continue
         elif key == "element":
-            if len(tok) != 3:
-                raise PlyError(f"{path}: bad element line {line.strip()!r}")
+            if len(tok) != 3 or not tok[2].isdigit():
+                raise PlyError(f"{path}: bad element line (header line {no})")
             elements.append((tok[1], int(tok[2]), []))
         elif key == "property":
             if not elements:
-                raise PlyError(f"{path}: property before any element")
-            if tok[1] == "list":
+                raise PlyError(f"{path}: property before any element (header line {no})")
+            if len(tok) >= 2 and tok[1] == "list":
                 if len(tok) != 5 or tok[2] not in _PLY_TYPES or tok[3] not in _PLY_TYPES:
-                    raise PlyError(f"{path}: bad list property line {line.strip()!r}")
+                    raise PlyError(f"{path}: bad list property (header line {no})")
                 elements[-1][2].append((tok[4], ("list", _PLY_TYPES[tok[2]], _PLY_TYPES[tok[3]])))
             else:
                 if len(tok) != 3 or tok[1] not in _PLY_TYPES:
-                    raise PlyError(f"{path}: unknown property type in {line.strip()!r}")
+                    raise PlyError(f"{path}: unknown property type (header line {no})")
                 elements[-1][2].append((tok[2], _PLY_TYPES[tok[1]]))
         elif key == "end_header":
             break
         else:
-            raise PlyError(f"{path}: unexpected PLY header line {line.strip()!r}")
+            raise PlyError(f"{path}: unexpected PLY header line {no}")
     if fmt is None:
         raise PlyError(f"{path}: PLY header has no format line")
-    return fmt, elements
+    for name, _, props in elements:
+        names = [q[0] for q in props]
+        if len(set(names)) != len(names):
+            raise PlyError(f"{path}: element '{name}' declares a property twice")
+    return PlyHeader(fmt, elements, header_bytes, os.fstat(f.fileno()).st_size)
 
 
-def _read_vertex_table(path: PathLike) -> dict[str, np.ndarray]:
-    """Read the ``vertex`` element of a PLY file into {property name: [N] array}."""
-    path = Path(path)
+def _check_sizes(h: PlyHeader, path, max_splats: Optional[int]) -> None:
+    """The header's counts against the limit and against the bytes the file really holds."""
+    if h.element("vertex") is None:
+        raise PlyError(f"{path}: PLY has no 'vertex' element (elements: {[e[0] for e in h.elements]})")
+    n = h.vertex_count
+    if max_splats is not None and n > max_splats:
+        raise PlyError(f"{path}: header announces {n} vertices, more than the limit of {max_splats}")
+    body = h.file_bytes - h.header_bytes
+    if h.format == "ascii":
+        values = sum(count * max(1, len(props)) for _, count, props in h.elements)
+        if 2 * values > body:
+            raise PlyError(f"{path}: truncated PLY: the header announces {values} ASCII values, the file holds "
+                           f"{body} bytes after the header (at least {2 * values} needed)")
+        return
+    need, exact = 0, True
+    for _, count, props in h.elements:
+        fixed = sum(np.dtype(t).itemsize for _, t in props if not isinstance(t, tuple))
+        lists = [t for _, t in props if isinstance(t, tuple)]
+        need += count * (fixed + sum(np.dtype(t[1]).itemsize for t in lists))  # lists: their length bytes at least
+        exact = exact and not lists
+    if body < need or (exact and body != need):
+        raise PlyError(f"{path}: truncated PLY: the header announces {need} bytes of data, the file holds {body}"
+                       if body < need else
+                       f"{path}: PLY length does not match its header: {need} bytes of data announced, {body} present")
+
+
+def read_ply_header(path: PathLike, max_splats: Optional[int] = None) -> PlyHeader:
+    """The checked header of a PLY file (counts against ``max_splats`` and the file length)."""
     with open(path, "rb") as f:
-        fmt, elements = _parse_header(f, path)
-        names = [e[0] for e in elements]
-        if "vertex" not in names:
-            raise PlyError(f"{path}: PLY has no 'vertex' element (elements: {names})")
-        if fmt == "ascii":
-            for name, count, props in elements:
-                if name != "vertex":
-                    for _ in range(count):
-                        f.readline()
-                    continue
-                if any(isinstance(p[1], tuple) for p in props):
-                    raise PlyError(f"{path}: list properties in 'vertex' are not supported")
-                rows = [f.readline() for _ in range(count)]
-                if count and not rows[-1]:
-                    raise PlyError(f"{path}: ASCII PLY ends before {count} vertices were read")
-                data = np.loadtxt(rows, dtype=np.float64, ndmin=2) if count else np.zeros((0, len(props)))
-                if data.shape[1] != len(props):
-                    raise PlyError(f"{path}: ASCII vertex rows have {data.shape[1]} values, header says {len(props)}")
-                return {p[0]: data[:, i].astype(np.dtype(p[1])) for i, p in enumerate(props)}
-        endian = "<" if fmt == "binary_little_endian" else ">"
-        for name, count, props in elements:
-            if any(isinstance(p[1], tuple) for p in props):
-                if name == "vertex":
-                    raise PlyError(f"{path}: list properties in 'vertex' are not supported")
-                raise PlyError(
-                    f"{path}: element '{name}' with list properties precedes 'vertex' in a binary PLY"
-                )
-            dtype = np.dtype([(p[0], endian + p[1]) for p in props])
-            if name != "vertex":
-                f.seek(count * dtype.itemsize, os.SEEK_CUR)
-                continue
-            buf = f.read(count * dtype.itemsize)
-            if len(buf) != count * dtype.itemsize:
-                raise PlyError(
-                    f"{path}: truncated PLY: {count} vertices of {dtype.itemsize} bytes need "
-                    f"{count * dtype.itemsize} bytes, got {len(buf)}"
-                )
-            arr = np.frombuffer(buf, dtype=dtype, count=count)
-            return {p[0]: np.asarray(arr[p[0]]).astype(np.dtype(p[1]).newbyteorder("=")) for p in props}
-    raise PlyError(f"{path}: no vertex data")  # unreachable
+        h = _parse_header(f, path)
+    _check_sizes(h, path, max_splats)
+    return h
+
+
+def _read_vertex_table(path: PathLike, max_splats: Optional[int] = None,
+                       file: Optional[BinaryIO] = None) -> tuple[dict[str, np.ndarray], PlyHeader]:
+    """Read the ``vertex`` element of a PLY file into {property name: [N] array} (and its header)."""
+    f = file if file is not None else open(path, "rb")
+    try:
+        f.seek(0)
+        h = _parse_header(f, path)
+        _check_sizes(h, path, max_splats)
+        _, _, props = h.element("vertex")
+        if any(isinstance(t, tuple) for _, t in props):
+            raise PlyError(f"{path}: list properties in 'vertex' are not supported")
+        f.seek(0)
+        try:
+            ply = plyfile.PlyData.read(f, mmap=False)
+        except (plyfile.PlyParseError, plyfile.PlyHeaderParseError, ValueError, EOFError) as exc:
+            raise PlyError(f"{path}: unreadable PLY data ({type(exc).__name__})") from None
+        data = ply["vertex"].data
+        return {q: np.asarray(data[q]).astype(np.dtype(data.dtype[q]).newbyteorder("=")) for q in data.dtype.names}, h
+    finally:
+        if file is None:
+            f.close()
 
 
 def _indexed(props: dict, prefix: str) -> list[str]:
@@ -189,6 +246,8 @@ def read_ply(
     dtype: torch.dtype = torch.float32,
     point_scale: Optional[float] = None,
     point_opacity: float = 0.9,
+    max_splats: Optional[int] = None,
+    file: Optional[BinaryIO] = None,
 ) -> Splats:
     """Read a 3DGS ``.ply`` (or a plain point-cloud ``.ply``) into :class:`Splats`.
 
@@ -196,8 +255,12 @@ def read_ply(
     isotropic splats of std ``point_scale`` (default: the median nearest-neighbour
     distance) and opacity ``point_opacity``; uchar colours are divided by 255,
     ushort by 65535, float colours are taken as [0, 1].
+
+    ``max_splats``: refuse a header that announces more vertices (before reading them).
+    ``file``: an already opened binary file to read instead of opening ``path`` (which then
+    only names the file in messages). 3DGS properties must be float or double.
     """
-    props = _read_vertex_table(path)
+    props, header = _read_vertex_table(path, max_splats, file)
     missing_xyz = [k for k in ("x", "y", "z") if k not in props]
     if missing_xyz:
         raise PlyError(f"{path}: PLY vertex element lacks properties {missing_xyz}")
@@ -236,6 +299,10 @@ def read_ply(
     missing = [k for k in _GS_REQUIRED if k not in props]
     if missing:
         raise PlyError(f"{path}: 3DGS PLY lacks required properties {missing}")
+    types = header.property_types()
+    not_float = [k for k, t in types.items() if (k in _GS_REQUIRED or k.startswith("f_rest_")) and t not in _FLOAT_TYPES]
+    if not_float:
+        raise PlyError(f"{path}: 3DGS properties must be float or double, not integers: {not_float[:6]}")
     rest_names = _indexed(props, "f_rest_")
     if len(rest_names) % 3:
         raise PlyError(f"{path}: number of f_rest_* properties ({len(rest_names)}) is not a multiple of 3")
@@ -271,11 +338,22 @@ def read_ply(
     )
 
 
-def write_ply(path: PathLike, splats: Splats, extras: bool = True) -> None:
-    """Write :class:`Splats` as a binary little-endian 3DGS ``.ply`` (float32).
+def sh_degree_of(k_rest: int) -> int:
+    """The SH degree whose higher bands have ``k_rest`` coefficients per channel (0, 3, 8, 15 -> 0..3)."""
+    for d in range(4):
+        if (d + 1) ** 2 - 1 == k_rest:
+            return d
+    raise ValueError(f"{k_rest} higher SH coefficients per channel is no SH degree 0-3 (expected 0, 3, 8 or 15)")
 
-    ``extras``: also write ``mass`` and ``attr_*`` (ignored by other tools).
-    Opacities are clamped to [1e-7, 1 - 1e-7] before the logit (finite values).
+
+def write_ply(path: PathLike, splats: Splats, extras: bool = True, sh_degree: Optional[int] = None) -> None:
+    """Write :class:`Splats` as a binary little-endian 3DGS ``.ply`` (float32), graphdeco layout.
+
+    ``extras``: also write ``mass`` and ``attr_*`` after the 3DGS properties (``plyfile``-based
+    loaders such as graphdeco's ignore them; the SIBR viewer's fixed-record reader needs
+    ``extras=False``). ``sh_degree`` (0-3, default: the splats' own): the higher bands are
+    zero-padded up to it, or cut down to it. Opacities are clamped to [1e-7, 1 - 1e-7] before
+    the logit (finite values). The header has no comment (SIBR reads the count on line 3).
     """
     n = len(splats)
     sp = splats.detach().to("cpu")
@@ -283,7 +361,15 @@ def write_ply(path: PathLike, splats: Splats, extras: bool = True) -> None:
     def np64(t):
         return t.detach().cpu().to(torch.float64).numpy()
 
-    k_rest = sp.sh_rest.shape[1]
+    rest3 = np64(sp.sh_rest)  # [N, K, 3]
+    own = sh_degree_of(rest3.shape[1])
+    degree = own if sh_degree is None else int(sh_degree)
+    if not 0 <= degree <= 3:
+        raise ValueError(f"write_ply: sh_degree must be 0..3, got {sh_degree}")
+    k_rest = (degree + 1) ** 2 - 1
+    if k_rest > rest3.shape[1]:
+        rest3 = np.concatenate([rest3, np.zeros((n, k_rest - rest3.shape[1], 3))], axis=1)
+    rest3 = rest3[:, :k_rest]
     cols: list[tuple[str, np.ndarray]] = []
     xyz = np64(sp.means)
     for i, k in enumerate("xyz"):
@@ -293,7 +379,7 @@ def write_ply(path: PathLike, splats: Splats, extras: bool = True) -> None:
     dc = np64(sp.sh_dc)
     for i in range(3):
         cols.append((f"f_dc_{i}", dc[:, i]))
-    rest = np64(sp.sh_rest).transpose(0, 2, 1).reshape(n, 3 * k_rest)  # channel-major
+    rest = rest3.transpose(0, 2, 1).reshape(n, 3 * k_rest)  # channel-major
     for i in range(3 * k_rest):
         cols.append((f"f_rest_{i}", rest[:, i]))
     o = np.clip(np64(sp.opacities), 1e-7, 1.0 - 1e-7)
@@ -311,18 +397,10 @@ def write_ply(path: PathLike, splats: Splats, extras: bool = True) -> None:
         at = np64(sp.attrs)
         for i in range(at.shape[1]):
             cols.append((f"attr_{i}", at[:, i]))
-    dtype = np.dtype([(name, "<f4") for name, _ in cols])
-    arr = np.empty(n, dtype=dtype)
+    arr = np.empty(n, dtype=np.dtype([(name, "<f4") for name, _ in cols]))
     for name, v in cols:
         arr[name] = v.astype(np.float32)
-    header = ["ply", "format binary_little_endian 1.0", "comment written by soma_ros",
-              f"element vertex {n}"]
-    header += [f"property float {name}" for name, _ in cols]
-    header.append("end_header")
-    path = Path(path)
-    with open(path, "wb") as f:
-        f.write(("\n".join(header) + "\n").encode("ascii"))
-        f.write(arr.tobytes())
+    plyfile.PlyData([plyfile.PlyElement.describe(arr, "vertex")], text=False, byte_order="<").write(str(path))
 
 
 # ------------------------------------------------------------------ .splat
@@ -330,12 +408,27 @@ _SPLAT_DTYPE = np.dtype([("pos", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 
 assert _SPLAT_DTYPE.itemsize == 32
 
 
-def read_splat(path: PathLike, dtype: torch.dtype = torch.float32) -> Splats:
-    """Read a 32-byte-per-splat ``.splat`` file (layout in the module docstring)."""
+def read_splat(path: PathLike, dtype: torch.dtype = torch.float32, max_splats: Optional[int] = None,
+               file: Optional[BinaryIO] = None) -> Splats:
+    """Read a 32-byte-per-splat ``.splat`` file (layout in the module docstring).
+
+    The size is checked before reading: a multiple of 32 bytes, at most ``max_splats`` records.
+    ``file``: an open binary file to read instead of opening ``path``."""
     path = Path(path)
-    raw = path.read_bytes()
-    if len(raw) % 32:
-        raise PlyError(f"{path}: .splat size {len(raw)} is not a multiple of 32 bytes")
+    f = file if file is not None else open(path, "rb")
+    try:
+        size = os.fstat(f.fileno()).st_size
+        if size % 32:
+            raise PlyError(f"{path}: .splat size {size} is not a multiple of 32 bytes")
+        if max_splats is not None and size // 32 > max_splats:
+            raise PlyError(f"{path}: holds {size // 32} splats, more than the limit of {max_splats}")
+        f.seek(0)
+        raw = f.read(size)
+    finally:
+        if file is None:
+            f.close()
+    if len(raw) != size:
+        raise PlyError(f"{path}: .splat changed while it was read")
     arr = np.frombuffer(raw, dtype=_SPLAT_DTYPE)
     rgba = arr["rgba"].astype(np.float64) / 255.0
     q = (arr["rot"].astype(np.float64) - 128.0) / 128.0
@@ -372,14 +465,15 @@ def write_splat(path: PathLike, splats: Splats) -> None:
     Path(path).write_bytes(arr.tobytes())
 
 
-def load_splats(path: PathLike, dtype: torch.dtype = torch.float32) -> Splats:
-    """Load ``.ply`` or ``.splat`` by extension."""
+def load_splats(path: PathLike, dtype: torch.dtype = torch.float32, max_splats: Optional[int] = None,
+                file: Optional[BinaryIO] = None) -> Splats:
+    """Load ``.ply`` or ``.splat`` by extension (``max_splats`` and ``file`` as for :func:`read_ply`)."""
     p = Path(path)
-    if not p.exists():
+    if file is None and not p.exists():
         raise FileNotFoundError(f"splat file not found: {p}")
     ext = p.suffix.lower()
     if ext == ".ply":
-        return read_ply(p, dtype=dtype)
+        return read_ply(p, dtype=dtype, max_splats=max_splats, file=file)
     if ext == ".splat":
-        return read_splat(p, dtype=dtype)
+        return read_splat(p, dtype=dtype, max_splats=max_splats, file=file)
     raise PlyError(f"{p}: unknown splat file extension {ext!r} (expected .ply or .splat)")

@@ -19,8 +19,19 @@ Start: ``soma_sim_node --ros-args -p checkpoint:=RUN/checkpoint.pt -p scene:=RUN
 
 Threads: physics steps, renders and splat clouds each run in their own
 fixed-rate thread (:mod:`.loops`), so a slow render never delays a step; the
-executor thread only takes /joint_states and reset requests, so input is never
-queued behind a step. Every published image, depth map, cloud and camera TF
+executor thread only takes /joint_states, at most ``input_rate_hz`` messages a
+second (under a flood the middleware keeps the newest and the rest are counted
+as dropped), so input is never queued behind a step and cannot starve it. The
+reset service has its own node (``<name>_reset``) and executor thread, and each
+reset runs in a worker thread with a time limit (``reset_timeout_s``): reading,
+checking and binding a scene never stops /joint_states from being taken, and a
+second reset while one runs is answered "busy".
+
+Reset input is untrusted (anyone on the DDS domain can call it; see
+docs/security.md): files are read only inside ``scene_dirs``
+(:class:`~soma_ros.core.scene_guard.ScenePathPolicy`), sizes are checked from
+the header or the message before anything is allocated, and the scene must be
+physically plausible beside the starting one (:class:`SceneLimits`). Every published image, depth map, cloud and camera TF
 comes from one consistent frame (the state of one step, the joint state that
 step used and that step's stamp). Publishers keep the last message only, so a
 slow subscriber never stalls the node.
@@ -46,6 +57,16 @@ from soma_msgs.msg import SimStatus
 from soma_msgs.srv import ResetScene
 from tf2_msgs.msg import TFMessage
 
+from ..core.cloud_layout import REQUIRED_FIELDS, SPLAT_FIELDS
+from ..core.scene_guard import (
+    SceneExtent,
+    SceneLimits,
+    ScenePathPolicy,
+    SceneRefused,
+    check_cloud_layout,
+    check_physical,
+    read_scene_file,
+)
 from ..core.splats import Splats
 from .conversions import (
     camera_info,
@@ -59,20 +80,6 @@ from .conversions import (
 )
 from .loops import FixedRateLoop
 from .qos import JOINT_STATES_QOS, LATCHED_QOS, SENSOR_OUT_QOS, STATUS_QOS
-
-
-def load_scene_file(path: str) -> Splats:
-    """A .ply / .splat file, or a scene bundle directory holding splats.ply."""
-    p = Path(path)
-    if p.is_dir():
-        p = p / "splats.ply"
-    if not p.is_file():
-        raise FileNotFoundError(f"scene file not found: {p}")
-    from ..core.ply import load_splats
-
-    s = load_splats(p)
-    s.validate()
-    return s
 
 
 class Frame(NamedTuple):
@@ -101,6 +108,14 @@ class RateMeter:
             return 0.0
         span = self.t[-1] - self.t[0]
         return (len(self.t) - 1) / span if span > 0 else 0.0
+
+
+def _one_line(exc: BaseException) -> str:
+    """An exception as one line of at most 300 characters (its type when it has no message)."""
+    text = " ".join(str(exc).split())
+    if not isinstance(exc, ValueError):
+        text = f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+    return text[:300] or type(exc).__name__
 
 
 def _float_param(node: Node, name: str, default: float, desc: str, lo: float, hi: float) -> float:
@@ -145,9 +160,37 @@ class SomaSimNode(Node):
             description="passive-object rule: steps where the model's own terms (its robot coupling) act with the "
                         "gripper closed are not passive, as in its training episodes (false: the rule on every step)"))
         self.max_joint_age = _float_param(self, "max_joint_state_age_s", 1.0,
-                                          "hold the robot still when the newest joint state is older than this, s; "
-                                          "joint states stamped further than this ahead of the node clock are rejected",
+                                          "hold the robot still when the newest joint state is older than this, s",
                                           0.01, 3600.0)
+        self.future_tolerance = _float_param(self, "future_stamp_tolerance_s", 0.1,
+                                             "joint states stamped further than this ahead of the node clock are "
+                                             "rejected (they would make every later message look older), s",
+                                             0.0, 3600.0)
+        self.joint_limit_margin = _float_param(self, "joint_limit_margin", 0.05,
+                                               "joint states with a position further than this outside the URDF "
+                                               "limits are rejected (rad or m)", 0.0, 1000.0)
+        self.input_rate_hz = _float_param(self, "input_rate_hz", 200.0,
+                                          "most /joint_states messages taken per second; under a flood the newest "
+                                          "is kept and the others count as dropped, Hz", 1.0, 100000.0)
+        p("scene_dirs", [""], ParameterDescriptor(
+            description="folders a reset's ply_path may be read from, symlinks resolved (default: the scene "
+                        "parameter's folder and ~/.ros/soma_scenes)"))
+        p("max_splats", 200000, ParameterDescriptor(description="most splats a reset scene may have (checked from "
+                                                                "the file header or the message before reading)"))
+        self.max_scene_mb = _float_param(self, "max_scene_file_mb", 256.0, "largest scene file a reset reads, MiB",
+                                         0.001, 1e6)
+        self.max_scale_ratio = _float_param(self, "max_splat_scale_ratio", 0.05,
+                                            "a reset scene's largest splat standard deviation, as a fraction of the "
+                                            "starting scene's diameter", 1e-6, 1e6)
+        self.max_extent_ratio = _float_param(self, "max_scene_extent_ratio", 10.0,
+                                             "a reset scene's largest bounding radius, as a multiple of the starting "
+                                             "scene's", 1e-3, 1e6)
+        self.max_scene_offset = _float_param(self, "max_scene_offset_m", 2.0,
+                                             "how far a reset scene's centre may lie outside the starting scene's "
+                                             "bounding sphere, m", 0.0, 1e6)
+        self.reset_timeout = _float_param(self, "reset_timeout_s", 10.0,
+                                          "a reset not done within this is refused (the running scene is kept), s",
+                                          0.1, 3600.0)
 
         import torch
 
@@ -159,7 +202,7 @@ class SomaSimNode(Node):
         if not ckpt or not scene:
             raise ValueError("parameters 'checkpoint' and 'scene' are required "
                              "(soma_sim_node --ros-args -p checkpoint:=RUN/checkpoint.pt -p scene:=RUN/scene)")
-        from ..live import JointStateFilter, load_live
+        from ..live import JointStateFilter, joint_limits, load_live
 
         cams = [c for c in gp("cameras") if c]
         self.live = load_live(ckpt, scene, camera_names=cams or None, render_scale=self.render_scale, device=gp("device"),
@@ -171,11 +214,20 @@ class SomaSimNode(Node):
 
             self.live.robot = RobotModel.from_config(gp("robot_config"))
         # A stamp far ahead of the clock, once accepted, would make every later message "go backwards".
-        self.joints = JointStateFilter(self.live.required_joints, max_future_s=self.max_joint_age)
+        self._joint_limits = joint_limits(self.live.robot, self.live.required_joints)
+        self.joints = JointStateFilter(self.live.required_joints, max_future_s=self.future_tolerance,
+                                       limits=self._joint_limits, limit_margin=self.joint_limit_margin)
+        self.limits = SceneLimits(max_splats=int(gp("max_splats")), max_file_bytes=int(self.max_scene_mb * 2**20),
+                                  max_scale_ratio=self.max_scale_ratio, max_extent_ratio=self.max_extent_ratio,
+                                  max_offset_m=self.max_scene_offset)
+        dirs = [d for d in gp("scene_dirs") if d] or [scene, "~/.ros/soma_scenes"]
+        self.scene_policy = ScenePathPolicy(dirs)
+        self._start_extent = SceneExtent.of(self.live.template)
         self.get_logger().info(
             f"loaded {ckpt} and scene {scene}: {len(self.live.template)} splats, cameras "
             f"{', '.join(c.name for c in self.live.cameras)}, joints {', '.join(self.live.required_joints)}")
         self.get_logger().info(f"passive-object rule: {self.live.sim.config.dynamics.passive_rule_text()}")
+        self.get_logger().info(f"reset reads scene files only inside: {', '.join(map(str, self.scene_policy.dirs))}")
 
         self.pub_splats = self.create_publisher(PointCloud2, f"{prefix}/splats", SENSOR_OUT_QOS)
         self.pub_status = self.create_publisher(SimStatus, f"{prefix}/status", STATUS_QOS)
@@ -187,7 +239,18 @@ class SomaSimNode(Node):
             self.pub_depth[c.name] = self.create_publisher(Image, f"{prefix}/{c.name}/depth", SENSOR_OUT_QOS)
             self.pub_info[c.name] = self.create_publisher(CameraInfo, f"{prefix}/{c.name}/camera_info", SENSOR_OUT_QOS)
         self.sub_js = self.create_subscription(JointState, "/joint_states", self._on_joint_state, JOINT_STATES_QOS)
-        self.srv_reset = self.create_service(ResetScene, f"{prefix}/reset", self._on_reset)
+        # the reset service on its own node and executor thread (started in start()): a reset never
+        # holds up the executor that takes /joint_states
+        self._reset_node = rclpy.create_node(f"{self.get_name()}_reset", namespace=self.get_namespace(),
+                                             context=self.context, start_parameter_services=False)
+        self.srv_reset = self._reset_node.create_service(ResetScene, f"{prefix}/reset", self._on_reset)
+        self._reset_executor = SingleThreadedExecutor(context=self.context)
+        self._reset_executor.add_node(self._reset_node)
+        self._reset_thread = threading.Thread(target=self._spin_reset, name="soma_reset_srv", daemon=True)
+        self._reset_mutex = threading.Lock()  # guards _reset_busy
+        self._reset_busy = False
+        self._commit_lock = threading.Lock()  # a reset's commit against its abandonment on timeout
+        self._stopping = threading.Event()
 
         self._publish_static_tf()
         self._step_ms = 0.0
@@ -205,66 +268,135 @@ class SomaSimNode(Node):
             self.loops.append(FixedRateLoop("soma_splats", self.splat_rate_hz, self._on_splats))
 
     def start(self) -> None:
-        """Start the physics and output threads (after the node is in an executor)."""
+        """Start the physics and output threads and the reset service (after the node is in an executor)."""
         for loop in self.loops:
             loop.start()
+        self._reset_thread.start()
 
-    def stop(self) -> None:
-        """Stop the threads; nothing is published after this returns."""
+    def stop(self, timeout: float = 1.5) -> None:
+        """Stop the threads (all of them within ``timeout`` s); nothing is published after this returns.
+        A reset still running is abandoned: its thread is a daemon and commits nothing."""
+        self._stopping.set()
+        deadline = time.monotonic() + timeout
         for loop in self.loops:
             loop.request_stop()
         for loop in self.loops:
-            if not loop.stop(timeout=5.0):
-                self.get_logger().warn(f"thread {loop.name} did not stop within 5 s")
+            if not loop.stop(timeout=max(0.0, deadline - time.monotonic())):
+                self.get_logger().warn(f"thread {loop.name} did not stop within {timeout:g} s")
+        if self._reset_thread.is_alive():
+            self._reset_thread.join(timeout=max(0.0, deadline - time.monotonic()))
+
+    def destroy_node(self) -> None:
+        self._stopping.set()
+        if self._reset_thread.is_alive():
+            self._reset_thread.join(timeout=0.5)
+        self._reset_executor.shutdown(timeout_sec=0.1)
+        self._reset_node.destroy_node()
+        super().destroy_node()
+
+    def _spin_reset(self) -> None:
+        from rclpy.executors import ExternalShutdownException
+
+        try:
+            while not self._stopping.is_set() and self.context.ok():
+                self._reset_executor.spin_once(timeout_sec=0.1)
+        except (ExternalShutdownException, KeyboardInterrupt):
+            pass
 
     def _set_frame(self, vec: Optional[np.ndarray], stamp_ns: Optional[int] = None) -> None:
         state, template, steps = self.live.snapshot()
         self._frame = Frame(state, template, vec, int(stamp_ns or self.get_clock().now().nanoseconds), steps)
 
     # ----------------------------------------------------------------- inputs
-    def _on_joint_state(self, msg: JointState) -> None:
+    def _on_joint_state(self, msg: JointState, info) -> None:
+        """O(joints) work: validate and store. ``info``: the message info; its publication sequence
+        number counts the messages the middleware dropped for newer ones."""
         from ..live import JointStateRejected
 
+        self.joints.count_sequence(info.get("publication_sequence_number") if isinstance(info, dict) else None)
         now = self.get_clock().now().nanoseconds
         stamp = ns_from_stamp(msg.header.stamp)
         if stamp == 0:
             stamp = now
         try:
-            self.joints.push(list(msg.name), list(msg.position), stamp, now_ns=now)
+            self.joints.push(msg.name, msg.position, stamp, now_ns=now)
         except JointStateRejected as exc:
             self.get_logger().warn(f"rejected /joint_states: {exc} ({self.joints.rejected} rejected so far)",
                                    throttle_duration_sec=2.0)
 
     def _on_reset(self, req: ResetScene.Request, resp: ResetScene.Response) -> ResetScene.Response:
-        try:
-            if req.splats.width * req.splats.height > 0:
-                new = cloud_to_splats_msg(req.splats)
-            elif req.ply_path:
-                new = load_scene_file(req.ply_path)
-            else:
-                raise ValueError("request has neither splats nor ply_path")
-            init = None
-            if len(req.initial_joint_state.name):
-                from ..live import JointStateFilter
+        """Runs on the reset thread: one worker at a time, answered within ``reset_timeout_s``."""
+        with self._reset_mutex:
+            busy, self._reset_busy = self._reset_busy, True
+        if busy:
+            return self._refuse(resp, "busy: another reset is still running")
+        job: dict = {}
+        ticket = {"abandoned": False, "committed": False}  # guarded by _commit_lock
+        done = threading.Event()
 
-                init = (list(req.initial_joint_state.name), list(req.initial_joint_state.position))
-                JointStateFilter(self.live.required_joints).push(*init, 0)  # validate before anything changes
-            with self._step_lock:  # not between a step's joint sample and its step
-                n = self.live.reset(new)
-                if init is not None:
-                    self.joints.clear()
-                    self.joints.push(*init, self.get_clock().now().nanoseconds)
-                self._set_frame(self.joints.sample())
-        except Exception as exc:  # noqa: BLE001 - any failure must leave the old scene running
-            resp.num_splats = len(self.live.template)
-            resp.success = False
-            resp.message = f"reset refused: {exc}"
-            self.get_logger().warn(resp.message)
-            return resp
+        def work() -> None:
+            try:
+                job["n"] = self._reset_work(req, ticket)
+            except BaseException as exc:  # noqa: BLE001 - every failure leaves the old scene running
+                job["error"] = exc
+            finally:
+                done.set()
+                with self._reset_mutex:
+                    self._reset_busy = False
+
+        t0 = time.monotonic()
+        threading.Thread(target=work, name="soma_reset", daemon=True).start()
+        while not done.wait(0.05):
+            if self._stopping.is_set() or time.monotonic() - t0 > self.reset_timeout:
+                with self._commit_lock:
+                    ticket["abandoned"] = not ticket["committed"]
+                if ticket["abandoned"]:
+                    return self._refuse(resp, f"not done within reset_timeout_s ({self.reset_timeout:g} s)")
+        if "error" in job:
+            return self._refuse(resp, _one_line(job["error"]))
+        n = job["n"]
         resp.success, resp.num_splats = True, n
         resp.message = f"scene reset: {n} splats"
         self.get_logger().info(resp.message)
         return resp
+
+    def _refuse(self, resp: ResetScene.Response, why: str) -> ResetScene.Response:
+        resp.num_splats = len(self.live.template)
+        resp.success = False
+        resp.message = f"reset refused: {why}"
+        self.get_logger().warn(resp.message)
+        return resp
+
+    def _reset_work(self, req: ResetScene.Request, ticket: dict) -> int:
+        """Read and check the requested scene, build what it needs, then swap it in (unless abandoned)."""
+        cloud = req.splats
+        if int(cloud.width) * int(cloud.height) > 0 or len(cloud.data):
+            check_cloud_layout(cloud, self.limits, REQUIRED_FIELDS, SPLAT_FIELDS)
+            new = cloud_to_splats_msg(cloud)
+        elif req.ply_path:
+            new = read_scene_file(req.ply_path, self.scene_policy, self.limits)
+        else:
+            raise SceneRefused("the request has neither splats (0 points) nor a ply_path")
+        check_physical(new, self._start_extent, self.limits)
+        init = None
+        if len(req.initial_joint_state.name):
+            from ..live import JointStateFilter
+
+            init = (list(req.initial_joint_state.name), list(req.initial_joint_state.position))
+            JointStateFilter(self.live.required_joints, limits=self._joint_limits,
+                             limit_margin=self.joint_limit_margin).push(*init, 0)  # validate before anything changes
+        prepared = self.live.prepare(new)  # the hierarchy and graphs, built while steps go on
+        with self._commit_lock:
+            if ticket["abandoned"]:
+                raise SceneRefused("abandoned after reset_timeout_s")
+            ticket["committed"] = True
+            with self._step_lock:  # not between a step's joint sample and its step
+                n = self.live.reset(new, prepared)
+                if init is not None:
+                    self.joints.clear()
+                    self.joints.push(*init, self.get_clock().now().nanoseconds)
+                self._set_frame(self.joints.sample())
+        return n
 
     # ------------------------------------------------------------------- step
     def _on_step(self) -> None:
@@ -315,6 +447,7 @@ class SomaSimNode(Node):
         st.image_rate_hz = float(self._image_rate.rate())
         st.joint_states_received = self.joints.received
         st.joint_states_rejected = self.joints.rejected
+        st.joint_states_dropped = self.joints.dropped
         st.failure_restarts = self._failure_resets
         st.settles = self.live.settles
         self.pub_status.publish(st)
@@ -378,8 +511,13 @@ def main(argv: Optional[list[str]] = None) -> int:
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         node.start()
+        period = 1.0 / node.input_rate_hz  # at most this many takes a second: a flood cannot starve the steps
         while not stop.is_set() and rclpy.ok():
+            t0 = time.monotonic()
             executor.spin_once(timeout_sec=0.1)
+            rest = period - (time.monotonic() - t0)
+            if rest > 0:
+                stop.wait(rest)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (FileNotFoundError, ValueError) as exc:

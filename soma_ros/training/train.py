@@ -53,7 +53,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from soma_ros.core.checkpoint import atomic_torch_save, save_checkpoint
+from soma_ros.core.checkpoint import atomic_torch_save, load_train_state, save_checkpoint, save_train_state
 from soma_ros.core.config import load_object_config
 from soma_ros.core.hierarchy import Hierarchy
 from soma_ros.core.metrics import masked_l2_dssim_loss
@@ -838,11 +838,8 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
 
     # ---- resume?
     state_path = out_dir / TRAIN_STATE
-    resume = None
-    if state_path.is_file():
-        resume = torch.load(state_path, map_location="cpu", weights_only=True)
-        if resume.get("format") != TRAIN_STATE_FORMAT:
-            raise ValueError(f"{state_path}: not a soma_ros training state")
+    resume = load_train_state(state_path, TRAIN_STATE_FORMAT, say)  # checksum verified; falls back to the previous
+    if resume is not None:
         if resume["fingerprint"] != json.loads(json.dumps(_config_fingerprint(cfg))):
             raise ValueError(f"{out_dir} holds a run with a different model/data/scene config; "
                              "use another --out or the same config to resume")
@@ -921,7 +918,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
                    "val_history": val_history, "best_iteration": best_iteration, "best_model": best_state,
                    "identified": identified, "skipped_iterations": guard.skipped, "rollbacks": guard.rollbacks,
                    "weights_checksum": _weights_checksum(sim)}
-        _atomic_torch_save(payload, state_path)
+        save_train_state(payload, state_path)
         info = stage_at(cfg, min(epoch, cfg.schedule.epochs - 1))
         extra = {"iteration": it, "epoch": epoch, "stage": info.stage, "total_iterations": total,
                  "complete": bool(final and it >= total), "train_config": cfg.name, "dataset": str(data_dir),

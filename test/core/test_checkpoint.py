@@ -8,7 +8,7 @@ import os
 import pytest
 import torch
 
-from soma_ros.core.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
+from soma_ros.core.checkpoint import content_checksum, load_checkpoint, read_checkpoint, save_checkpoint
 from soma_ros.core.config import load_model_config
 from soma_ros.core.scenes import synthetic_rope
 from soma_ros.core.simulator import RobotAction, SceneContext, Simulator
@@ -92,6 +92,7 @@ def test_save_is_atomic_and_bad_files_fail_clearly(tmp_path, monkeypatch):
         load_checkpoint(other)
     payload = read_checkpoint(path)
     payload["state_dict"].pop("gnn.decoder.net.0.weight")
+    payload["checksum"] = content_checksum(payload)  # a well-formed file that does not match its config
     broken = tmp_path / "broken.pt"
     torch.save(payload, broken)
     with pytest.raises(ValueError, match="missing"):
@@ -123,9 +124,83 @@ def test_an_effect_parameter_added_later_keeps_its_config_value_with_a_warning(t
     for spec in payload["model_config"]["effects"]:  # as written before the parameter existed
         if isinstance(spec, dict) and spec.get("name") == "gripper_slip":
             spec.pop("weaken", None)
+    payload["checksum"] = content_checksum(payload)
     old = tmp_path / "old.pt"
     torch.save(payload, old)
     with pytest.warns(UserWarning, match="gripper_slip.weaken"):
         loaded = load_checkpoint(old)
     assert float(loaded.effects["gripper_slip"].weaken.detach()) == 0.0
     assert float(loaded.effects["gripper_slip"].loosen.detach()) == pytest.approx(0.5)
+
+
+def _flip_tensor_bytes(path, n=100):
+    """Flip ``n`` bytes inside the largest tensor record of a torch zip archive (in place)."""
+    import zipfile
+
+    with zipfile.ZipFile(path) as z:
+        info = max((i for i in z.infolist() if "/data/" in i.filename), key=lambda i: i.file_size)
+    raw = bytearray(path.read_bytes())
+    # the record's data follows its 30-byte local header, file name and extra field
+    name_len = int.from_bytes(raw[info.header_offset + 26: info.header_offset + 28], "little")
+    extra_len = int.from_bytes(raw[info.header_offset + 28: info.header_offset + 30], "little")
+    start = info.header_offset + 30 + name_len + extra_len
+    for i in range(n):
+        raw[start + (i * 37) % info.file_size] ^= 0x5A
+    path.write_bytes(bytes(raw))
+
+
+def test_a_checkpoint_with_flipped_bytes_is_refused_naming_the_file(tmp_path):
+    """100 flipped bytes in the weights: torch still unpickles the file, the content checksum
+    does not match, and the load fails with one line that names the file."""
+    _, sim = _trained_looking_model()
+    path = save_checkpoint(tmp_path / "m.pt", sim)
+    assert read_checkpoint(path)["checksum"].startswith("sha256:")
+    _flip_tensor_bytes(path)
+    with pytest.raises(ValueError) as err:
+        load_checkpoint(path)
+    msg = str(err.value)
+    assert str(path) in msg and "\n" not in msg
+    assert "SHA-256" in msg or "not a readable" in msg
+    truncated = tmp_path / "t.pt"
+    truncated.write_bytes((tmp_path / "m.pt").read_bytes()[:5000])
+    with pytest.raises(ValueError, match="not a readable soma_ros checkpoint") as err:
+        load_checkpoint(truncated)
+    assert str(truncated) in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_checkpoint_without_a_checksum_loads_with_a_warning(tmp_path):
+    _, sim = _trained_looking_model()
+    path = save_checkpoint(tmp_path / "m.pt", sim)
+    payload = read_checkpoint(path)
+    payload.pop("checksum")
+    old = tmp_path / "old.pt"
+    torch.save(payload, old)
+    with pytest.warns(UserWarning, match="without a content checksum"):
+        load_checkpoint(old)
+
+
+def test_train_state_checksum_and_fallback_to_the_previous_state(tmp_path):
+    """save_train_state keeps the replaced state; a corrupt or truncated newest state makes
+    load_train_state fall back to it and say so; both unreadable is one error naming both."""
+    from soma_ros.core.checkpoint import load_train_state, previous_state_path, save_train_state
+
+    fmt = "soma_ros.train_state/1"
+    path = tmp_path / "train_state.pt"
+    assert load_train_state(path, fmt) is None
+    for it in (10, 20):
+        save_train_state({"format": fmt, "iteration": it, "model": {"w": torch.randn(4000)}}, path)
+    prev = previous_state_path(path)
+    assert prev.name == "train_state.prev.pt" and torch.load(prev, weights_only=True)["iteration"] == 10
+    assert load_train_state(path, fmt)["iteration"] == 20
+    said = []
+    _flip_tensor_bytes(path)
+    got = load_train_state(path, fmt, log=said.append)
+    assert got["iteration"] == 10
+    assert len(said) == 1 and str(path) in said[0] and "previous training state train_state.prev.pt" in said[0]
+    path.write_bytes(prev.read_bytes()[:3000])  # truncated newest
+    said.clear()
+    assert load_train_state(path, fmt, log=said.append)["iteration"] == 10 and "not a readable" in said[0]
+    prev.write_bytes(b"garbage")
+    with pytest.raises(ValueError, match="no readable training state") as err:
+        load_train_state(path, fmt)
+    assert str(path) in str(err.value) and str(prev) in str(err.value) and "\n" not in str(err.value)

@@ -229,3 +229,101 @@ def test_ply_file_read_and_written_again_is_byte_identical(tmp_path):
         write_ply(a, s)
         write_ply(b, read_ply(a))
         assert a.read_bytes() == b.read_bytes()
+
+
+# --------------------------------------------------------------------------- graphdeco / SIBR compatibility
+def _graphdeco_style_load(path, max_sh_degree):
+    """What a loader in the graphdeco layout does with a .ply (written for this test from the
+    layout's description): plyfile, xyz, opacity, f_dc, f_rest_* sorted by index and required to
+    number 3 * ((D + 1)^2 - 1), scale_* and rot_* sorted by index; returns the arrays."""
+    import plyfile
+
+    el = plyfile.PlyData.read(str(path)).elements[0]
+    names = [p.name for p in el.properties]
+    xyz = np.stack([np.asarray(el[k]) for k in "xyz"], axis=1)
+    opacity = np.asarray(el["opacity"])[:, None]
+    dc = np.stack([np.asarray(el[f"f_dc_{i}"]) for i in range(3)], axis=1)
+    rest_names = sorted((n for n in names if n.startswith("f_rest_")), key=lambda n: int(n.split("_")[-1]))
+    assert len(rest_names) == 3 * (max_sh_degree + 1) ** 2 - 3
+    rest = np.stack([np.asarray(el[n]) for n in rest_names], axis=1) if rest_names else np.zeros((len(xyz), 0))
+    rest = rest.reshape(len(xyz), 3, (max_sh_degree + 1) ** 2 - 1)
+    scale = np.stack([np.asarray(el[n]) for n in sorted((n for n in names if n.startswith("scale_")),
+                                                           key=lambda n: int(n.split("_")[-1]))], axis=1)
+    rot = np.stack([np.asarray(el[n]) for n in sorted((n for n in names if n.startswith("rot")),
+                                                         key=lambda n: int(n.split("_")[-1]))], axis=1)
+    return xyz, opacity, dc, rest, scale, rot
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_plyfile_and_a_graphdeco_layout_loader_read_the_written_ply(tmp_path, degree):
+    """Written at SH degree 0-3 (padding or cutting the higher bands), the file is what plyfile
+    and a graphdeco-layout loader read: counts, f_rest channel-major, log scales, logit opacity.
+    The header is SIBR's: format on line 2, element vertex N on line 3, no comment."""
+    import plyfile
+
+    sp = random_splats(n=40, k_rest=8, n_attr=0)  # degree 2 in memory
+    p = tmp_path / f"d{degree}.ply"
+    write_ply(p, sp, extras=False, sh_degree=degree)
+    lines, _ = _header(p)
+    assert lines[:3] == ["ply", "format binary_little_endian 1.0", "element vertex 40"]
+    assert not any(ln.startswith("comment") for ln in lines)
+    ply = plyfile.PlyData.read(str(p))
+    assert [e.name for e in ply.elements] == ["vertex"] and ply["vertex"].count == 40
+    assert all(prop.val_dtype == "f4" for prop in ply["vertex"].properties)
+    xyz, opacity, dc, rest, scale, rot = _graphdeco_style_load(p, degree)
+    k = (degree + 1) ** 2 - 1
+    np.testing.assert_array_equal(xyz, sp.means.numpy())
+    np.testing.assert_array_equal(dc, sp.sh_dc.numpy())
+    want = np.zeros((40, k, 3), np.float32)
+    m = min(k, 8)
+    want[:, :m] = sp.sh_rest[:, :m].numpy()
+    np.testing.assert_array_equal(rest, want.transpose(0, 2, 1))  # [N, 3, K]: graphdeco's features_rest layout
+    np.testing.assert_allclose(np.exp(scale), sp.scales.numpy(), rtol=1e-6)
+    np.testing.assert_allclose(1 / (1 + np.exp(-opacity[:, 0])), sp.opacities.numpy(), atol=1e-6)
+    np.testing.assert_array_equal(rot, sp.quats.numpy())
+    back = read_ply(p)  # and it reads back here at that degree
+    assert back.sh_rest.shape == (40, k, 3)
+    np.testing.assert_array_equal(back.sh_rest.numpy(), want)
+
+
+def test_bad_sh_degree_and_integer_3dgs_properties_are_refused(tmp_path):
+    sp = random_splats(n=5, k_rest=3, n_attr=0)
+    with pytest.raises(ValueError, match="sh_degree must be 0..3"):
+        write_ply(tmp_path / "x.ply", sp, sh_degree=4)
+    with pytest.raises(ValueError, match="no SH degree 0-3"):
+        write_ply(tmp_path / "x.ply", random_splats(n=5, k_rest=5, n_attr=0))
+    f = {k: np.zeros(3) for k in ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1",
+                                  "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]}
+    _write_foreign_ply(tmp_path / "ints.ply", f, types={"scale_0": "u1", "opacity": "i4"})
+    with pytest.raises(PlyError, match=r"must be float or double, not integers: \['opacity', 'scale_0'\]"):
+        read_ply(tmp_path / "ints.ply")
+
+
+def test_headers_are_checked_against_the_limit_and_the_file_length_before_reading(tmp_path):
+    """A header's counts are checked before any data is read: against max_splats, against the
+    bytes a binary file really holds (short or long), and against what an ASCII file can hold."""
+    from soma_ros.core.ply import read_ply_header
+
+    p = tmp_path / "a.ply"
+    write_ply(p, random_splats(n=30, k_rest=0, n_attr=0), extras=False)
+    assert read_ply_header(p).vertex_count == 30
+    with pytest.raises(PlyError, match="announces 30 vertices, more than the limit of 29"):
+        read_ply(p, max_splats=29)
+    raw = p.read_bytes()
+    (tmp_path / "long.ply").write_bytes(raw + b"\0" * 7)
+    with pytest.raises(PlyError, match="does not match its header"):
+        read_ply(tmp_path / "long.ply")
+    head = b"ply\nformat ascii 1.0\nelement vertex 100000000\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    (tmp_path / "lie.ply").write_bytes(head + b"0 0 0\n" * 40)
+    with pytest.raises(PlyError, match="truncated PLY: the header announces 300000000 ASCII values"):
+        read_ply(tmp_path / "lie.ply")
+    (tmp_path / "nohead.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\n" + b"comment x\n" * 8000)
+    with pytest.raises(PlyError, match="no end_header within 65536 bytes"):
+        read_ply(tmp_path / "nohead.ply")
+    (tmp_path / "dup.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float x\n"
+                                       b"end_header\n1 2\n")
+    with pytest.raises(PlyError, match="declares a property twice"):
+        read_ply(tmp_path / "dup.ply")
+    (tmp_path / "n.splat").write_bytes(b"\0" * 64)
+    with pytest.raises(PlyError, match="holds 2 splats, more than the limit of 1"):
+        read_splat(tmp_path / "n.splat", max_splats=1)

@@ -205,7 +205,7 @@ def _malformed_clouds():
     neg = np.frombuffer(bytes(base.data), np.float32).copy().reshape(800, 16)
     neg[9, 3] = -0.01  # scale_0
     return [
-        ("empty cloud", variant(width=0, data=b""), "neither splats nor ply_path"),
+        ("empty cloud", variant(width=0, data=b""), "neither splats (0 points) nor a ply_path"),
         ("missing opacity field", variant(fields=[f for f in base.fields if f.name != "opacity"]), "lacks required fields: opacity"),
         ("NaN means", variant(data=nan.tobytes()), "non-finite"),
         ("truncated data", variant(data=bytes(base.data)[:-100]), "expected"),
@@ -234,7 +234,7 @@ def test_reset_with_a_new_scene_and_refused_resets(ros_env, untrained_run, probe
             assert resp.num_splats == 3000, name
             assert resp.message.startswith("reset refused:") and reason in resp.message, (name, resp.message)
         resp = probe.reset(ply_path=str(tmp_path / "nope.ply"))
-        assert not resp.success and "scene file not found" in resp.message and resp.num_splats == 3000
+        assert not resp.success and "no scene this node may read" in resp.message and resp.num_splats == 3000
 
         # the old scene keeps running: same splats, steps go on
         n0 = probe.count[("splats",)]
@@ -313,8 +313,9 @@ def test_bad_joint_states_are_rejected_logged_and_survived(ros_env, untrained_ru
     """NaN/inf values, wrong lengths, unknown names, duplicates, stamps going backwards and
     stamps far ahead: each rejected and counted, logged (throttled), never used (the rope,
     which moves as soon as the gripper reaches it, stays bit-exactly still), and the
-    correctly stamped stream that follows is taken again."""
-    with sim_node(ros_env, untrained_run, "render_rate_hz:=0.0", "splat_rate_hz:=10.0") as node:
+    correctly stamped stream that follows is taken again (input_rate_hz above the burst's rate:
+    every message is taken, none dropped for a newer one)."""
+    with sim_node(ros_env, untrained_run, "render_rate_hz:=0.0", "splat_rate_hz:=10.0", "input_rate_hz:=2000.0") as node:
         _started(probe, node, kin["hover"], key=("splats",))
         assert probe.hold(kin["hover"], lambda: _accepted(probe.last_status()) >= 5, 30)
         st0 = probe.last_status()
