@@ -90,7 +90,7 @@ class CameraTopics:
 
     name: str
     namespace: str
-    color: str
+    color: Optional[str]
     color_compressed: bool
     camera_info: Optional[str]
     depth: Optional[str]
@@ -99,6 +99,8 @@ class CameraTopics:
 
     def problems(self) -> list[str]:
         out = []
+        if self.color is None:
+            out.append(f"camera '{self.name}': no colour topic (raw or compressed)")
         if self.camera_info is None:
             out.append(f"camera '{self.name}': no camera_info topic (looked for color/ and aligned_depth_to_color/)")
         if self.depth is None:
@@ -127,7 +129,10 @@ def discover_cameras(topics: dict[str, str], cfg: Optional[TopicConfig] = None) 
     raw = {k: t for k, t in _pattern_keys(cfg.color, topics).items() if topics[t] == IMAGE_TYPE}
     comp = {k: t for k, t in _pattern_keys(cfg.color, topics, cfg.compressed_suffix).items()
             if topics[t] == COMPRESSED_TYPE}
-    keys = sorted(set(raw) | set(comp))
+    # a namespace with depth or camera info but no colour is a camera whose colour is missing
+    others = {k for kind in ("depth", "camera_info", "depth_camera_info")
+              for k, t in _pattern_keys(getattr(cfg, kind), topics).items() if topics[t] in (IMAGE_TYPE, INFO_TYPE)}
+    keys = sorted(set(raw) | set(comp) | others)
     last = [k.split("/")[-1] for k in keys]
     out: dict[str, CameraTopics] = {}
     for k, short in zip(keys, last):
@@ -139,7 +144,8 @@ def discover_cameras(topics: dict[str, str], cfg: Optional[TopicConfig] = None) 
 
         info = have("camera_info", (INFO_TYPE,)) or have("depth_camera_info", (INFO_TYPE,))
         out[name] = CameraTopics(
-            name=name, namespace=k, color=raw.get(k) or comp[k], color_compressed=k not in raw, camera_info=info,
+            name=name, namespace=k, color=raw.get(k) or comp.get(k), color_compressed=k not in raw and k in comp,
+            camera_info=info,
             depth=have("depth", (IMAGE_TYPE,)), object_mask=have("object_mask", (IMAGE_TYPE,)),
             robot_mask=have("robot_mask", (IMAGE_TYPE,)),
         )
@@ -328,7 +334,7 @@ def read_episode(
         cams = _select_cameras(discover_cameras(types, topics), cameras, bag, topics)
         needed = [topics.joint_states]
         for ct in cams:
-            needed += [ct.color]
+            needed.append(ct.color or topics.topic("color", ct.namespace))
             if ct.camera_info is None:
                 needed.append(topics.topic("camera_info", ct.namespace))
             if ct.depth is None:
