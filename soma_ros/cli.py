@@ -21,6 +21,7 @@ COMMANDS: list[tuple[str, str, str]] = [
     ("robot", "robot", "inspect a robot URDF: chain, limits, end-effector and control points"),
     ("scene", "scene", "make, inspect or convert a splat scene (.ply / .splat)"),
     ("reconstruct", "reconstruct", "build the initial splat scene from bags or a multi-view capture"),
+    ("dataset", "dataset", "check / inspect a folder of recordings before training"),
     ("train", "train", "fit the simulator offline from rosbags"),
     ("eval", "eval", "evaluate a checkpoint on a dataset (open-loop rollouts)"),
     ("resim", "resim", "open-loop resimulation of one bag, without ROS running"),

@@ -28,7 +28,9 @@ def register(subparsers) -> None:
     )
     p.add_argument("--checkpoint", required=True, metavar="CKPT",
                    help="run folder, checkpoint.pt, spring_mass.pt (or its folder), or 'static'")
-    p.add_argument("--data", required=True, metavar="DATASET", help="dataset folder with manifest.json")
+    p.add_argument("--data", required=True, nargs="+", metavar="DATA",
+                   help="a folder of bags (with or without manifest.json), one bag, or several bags")
+    p.add_argument("--strict", action="store_true", help="a bad bag is fatal (default: it is listed and skipped)")
     p.add_argument("--split", default="test", choices=["train", "test"], help="episodes to score (default: test)")
     p.add_argument("--out", default=None, metavar="DIR", help="output folder (default: RUN/eval_<split>)")
     p.add_argument("--run", default=None, metavar="RUN",
@@ -72,14 +74,17 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.time()
     model = StaticModel() if args.checkpoint == "static" else load_model(args.checkpoint)
     name = args.name or ("static" if args.checkpoint == "static" else Path(args.checkpoint).resolve().name.replace(".pt", ""))
-    ctx = EvalContext.from_run(run_dir, args.data, args.scene)
+    data = args.data[0] if len(args.data) == 1 else args.data
+    ctx = EvalContext.from_run(run_dir, data, args.scene, strict=True if args.strict else None)
+    for line in ctx.skipped:
+        print(f"soma eval: {line}", file=sys.stderr)
     out = Path(args.out) if args.out else run_dir / f"eval_{args.split}"
     cfg = EvalConfig(metrics=EvalMetricsConfig(with_lpips=not args.no_lpips), frame_stride=args.frame_stride,
                      max_episodes=args.max_episodes, contact_sheets=not args.no_sheets, sheet_frames=args.sheet_frames,
                      video=args.video, progress=not args.quiet)
     res = evaluate_models({name: model}, ctx, args.split, {name: out}, cfg, log=lambda s: None)[name]
     mean = res["mean"]
-    print(f"soma eval: {name} on {mean['episodes']} {args.split} episode(s) of {args.data} "
+    print(f"soma eval: {name} on {mean['episodes']} {args.split} episode(s) of {' '.join(args.data)} "
           f"({time.time() - t0:.0f} s)")
     print("  " + "  ".join(f"{m}={format_metric(m, mean.get(m))}" for m in METRICS))
     for n in res.get("notes", []):

@@ -24,9 +24,13 @@ Writes into OUT:
                    the ground-truth /world/object_points), plus a "resim" section
   sheets/<episode>.png     contact sheet: measured | simulated | |error| per camera
 
-Errors are one line: a missing or non-rosbag2 bag, a bag without /joint_states,
-joint names or robot that do not match the checkpoint/scene, an unknown camera,
-an existing OUT/resim_bag (without --force).
+The cameras simulated and scored are the ones the bag has (found from its topics as
+:func:`trainer.bags.discover_cameras` does: any names, nested namespaces, raw or
+compressed colour), posed from the bag's own TF, so a bag from another camera set
+than the training episodes works. Errors are one line: a missing or non-rosbag2
+bag, a bag without /joint_states, joint names or robot that do not match the
+checkpoint/scene, a camera without camera_info or TF path, an unknown camera, an
+existing OUT/resim_bag (without --force).
 """
 
 from __future__ import annotations
@@ -398,21 +402,25 @@ def resimulate(checkpoint: str, bag: str | Path, out: str | Path, *, run_dir: Op
     if not (scene_dir / "scene.json").is_file():
         raise FileNotFoundError(f"scene bundle not found: {scene_dir}")
     bundle = SceneBundle.load(scene_dir)
-    scene_cams = [c.name for c in bundle.cameras]
-    info_topics = {c: topics.topic("camera_info", c) for c in scene_cams}
+    # the cameras the bag has (any names, flat or nested namespaces), not the training rig's
+    from trainer.bags import discover_cameras
+
+    scan = scan_bag(bag, topics.joint_states, {})
+    bag_cams = discover_cameras(scan.topics, topics)
+    info_topics = {c: ct.camera_info for c, ct in bag_cams.items() if ct.camera_info}
     scan = scan_bag(bag, topics.joint_states, info_topics)
-    if not scene_cams:  # a bundle without cameras: the bag's
-        pre, suf = topics.camera_info.split("{cam}")[0], topics.camera_info.split("{cam}")[-1]
-        info_topics = {t[len(pre): len(t) - len(suf)]: t for t in scan.topics if t.startswith(pre) and t.endswith(suf)}
-        scan = scan_bag(bag, topics.joint_states, info_topics)
-    known = scene_cams or sorted(scan.camera_info)
+    known = sorted(bag_cams)
+    if not known:
+        raise ValueError(f"{bag}: no camera topics matching {topics.color} (raw or {topics.compressed_suffix})")
     wanted = list(cameras) if cameras else list(known)
     unknown = [c for c in wanted if c not in known]
     if unknown:
-        raise ValueError(f"unknown camera(s) {', '.join(unknown)}; the scene has {', '.join(known) or 'none'}")
+        raise ValueError(f"unknown camera(s) {', '.join(unknown)}; the bag has {', '.join(known)}")
     no_info = [c for c in wanted if c not in scan.camera_info]
     if no_info:
-        raise ValueError(f"{bag}: no {info_topics.get(no_info[0], topics.camera_info)} for camera '{no_info[0]}'")
+        c = no_info[0]
+        raise ValueError(f"{bag}: no {topics.topic('camera_info', bag_cams[c].namespace)} or "
+                         f"{topics.topic('depth_camera_info', bag_cams[c].namespace)} for camera '{c}'")
     sim_topics = [t for t in scan.topics if t.startswith(prefix.rstrip("/") + "/")]
     if sim_topics:
         raise ValueError(f"{bag}: already has topics under {prefix} ({sim_topics[0]}, ...); choose another --prefix")
@@ -435,7 +443,7 @@ def resimulate(checkpoint: str, bag: str | Path, out: str | Path, *, run_dir: Op
             ep_name = bag.name
             if ep_name == bundle.extra.get("source_episode"):  # not that episode: never start from the unaligned G_0
                 ep_name += "_resim"
-            frames = scan.counts.get(topics.topic("color", wanted[0]))
+            frames = scan.counts.get(bag_cams[wanted[0]].color or "")
             ctx = EvalContext.from_run(run, _one_episode_dataset(Path(tmp) / "data", bag, ep_name, frames), scene)
             split = RESIM_SPLIT
         ref = ctx.refs[0]

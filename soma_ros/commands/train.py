@@ -7,14 +7,18 @@ import json
 from pathlib import Path
 
 DESCRIPTION = """\
-Fit the learned simulator offline from a dataset of episode bags (a folder with
-manifest.json, e.g. from `soma world`): scene set-up from the first frame of a
+Fit the learned simulator offline from episode bags: a folder of rosbag2
+directories (with or without manifest.json; without one the split is
+deterministic and written to RUN/split.json), one bag, or several. Masks a bag
+lacks are derived from geometry (data.masks). A bad bag in a folder is listed
+and skipped (--strict: fatal). Scene set-up from the first frame of a
 training episode (or --scene), then training with the paper's two-stage
 multi-resolution schedule (config/train/*.yaml).
 
 RUN gets: checkpoint.pt (the simulator), scene/ (the scene bundle the nodes
 load, with hierarchy.pt), train_state.pt (optimiser + schedule, for resuming),
-log.csv, loss.png, train_config.yaml, summary.json.
+log.csv, loss.png, train_config.yaml, summary.json, split.json, cache/masks/
+(derived masks).
 
 Run the same command again on the same RUN to resume after an interruption.
 Multi-process / multi-GPU: torchrun --nproc_per_node N -m soma_ros.cli train ...
@@ -25,7 +29,9 @@ Multi-process / multi-GPU: torchrun --nproc_per_node N -m soma_ros.cli train ...
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="fit the simulator offline from rosbags", description=DESCRIPTION,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", required=True, help="dataset folder (manifest.json + one bag per episode)")
+    p.add_argument("--data", required=True, nargs="+", metavar="DATA",
+                   help="a folder of bags (with or without manifest.json), one bag, or several bags")
+    p.add_argument("--strict", action="store_true", help="a bad bag is fatal (default: it is listed and skipped)")
     p.add_argument("--config", default="tiny", help="train config: a name in config/train (tiny, paper) or a YAML path")
     p.add_argument("--out", required=True, help="run folder (created; an existing run there is resumed)")
     p.add_argument("--scene", default=None, help="use this scene bundle (from `soma reconstruct --bag`) instead of "
@@ -70,7 +76,10 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_train_config(args.config, parse_overrides(args.set))
     if args.quiet:
         cfg.run.progress = False
-    summary = train(cfg, Path(args.data), Path(args.out), scene_dir=Path(args.scene) if args.scene else None,
+    if args.strict:
+        cfg.data.strict = True
+    data = Path(args.data[0]) if len(args.data) == 1 else [Path(p) for p in args.data]
+    summary = train(cfg, data, Path(args.out), scene_dir=Path(args.scene) if args.scene else None,
                     max_iterations=args.max_iterations)
     import os
 

@@ -73,6 +73,7 @@ from soma_ros.core.simulator import RobotAction
 
 from soma_ros.data.bags import BagError, Episode, TopicConfig, camera_mount, read_episode, resolve_camera_poses, world_from_base
 from soma_ros.training.config import DataConfig, TrainConfig
+from soma_ros.data.sources import ANY_SPLIT, MANIFEST, EpisodeRef, _read_manifest, load_dataset  # noqa: F401  (shared API)
 
 __all__ = [
     "MANIFEST",
@@ -85,60 +86,15 @@ __all__ = [
     "backproject",
 ]
 
-MANIFEST = "manifest.json"
-
-
-# --------------------------------------------------------------------------- dataset listing
-@dataclass
-class EpisodeRef:
-    """One manifest entry: ``bag`` is the absolute bag directory."""
-
-    name: str
-    bag: Path
-    split: str
-    task: Optional[str] = None
-    frames: Optional[int] = None
-
 
 def load_manifest(dataset_dir: Union[str, Path]) -> dict:
     """``DATASET/manifest.json`` as a dict (FileNotFoundError / ValueError naming the problem)."""
     d = Path(dataset_dir)
-    m = d / MANIFEST
     if not d.is_dir():
         raise FileNotFoundError(f"dataset folder not found: {d}")
-    if not m.is_file():
+    if not (d / MANIFEST).is_file():
         raise FileNotFoundError(f"dataset {d} has no {MANIFEST}")
-    try:
-        data = json.loads(m.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{m}: invalid JSON ({exc.msg} at line {exc.lineno})") from None
-    if not isinstance(data, dict) or not isinstance(data.get("episodes"), list):
-        raise ValueError(f"{m}: expected an object with an 'episodes' list")
-    return data
-
-
-def load_dataset(
-    dataset_dir: Union[str, Path],
-    split: Optional[str] = None,
-    tasks: Optional[Sequence[str]] = None,
-) -> list[EpisodeRef]:
-    """Episodes of ``DATASET/manifest.json`` in manifest order, optionally of one split
-    ("train" / "test") and of some tasks. Bags are checked to exist."""
-    d = Path(dataset_dir)
-    man = load_manifest(d)
-    out = []
-    for i, e in enumerate(man["episodes"]):
-        if not isinstance(e, dict) or "name" not in e:
-            raise ValueError(f"{d / MANIFEST}: episodes[{i}] has no 'name'")
-        if split is not None and e.get("split") != split:
-            continue
-        if tasks is not None and e.get("task") not in tasks:
-            continue
-        bag = d / str(e.get("bag", e["name"]))
-        if not bag.exists():
-            raise FileNotFoundError(f"{d / MANIFEST}: bag of episode '{e['name']}' not found: {bag}")
-        out.append(EpisodeRef(str(e["name"]), bag, str(e.get("split", "")), e.get("task"), e.get("frames")))
-    return out
+    return _read_manifest(d)
 
 
 def topic_config(cfg: DataConfig) -> TopicConfig:
@@ -174,6 +130,8 @@ class EpisodeData:
     mounts: dict[str, tuple[str, np.ndarray]] = field(default_factory=dict)
     world_frame: str = "world"
     wrist_force: Optional[torch.Tensor] = None
+    #: per camera, where its masks came from: "bag", "folder" or "derived"
+    mask_source: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         T, C, H, W = self.num_frames, len(self.camera_names), self.height, self.width
@@ -301,19 +259,82 @@ def _resize_stack(arr: np.ndarray, w: int, h: int, kind: str) -> np.ndarray:
     return np.stack(out)
 
 
+def episode_masks(ep: Episode, robot: RobotModel, fk_np: dict[str, np.ndarray], cfg: DataConfig, name: str,
+                  mask_cache: Optional[Path] = None) -> dict[str, str]:
+    """Fill every camera's missing ``object_mask`` / ``robot_mask`` [T, H, W] of ``ep`` (poses resolved)
+    by ``cfg.masks`` (:mod:`soma_ros.data.masks`): the bag's topics, a PNG folder, or derived from geometry
+    (cached in ``mask_cache`` when given). Returns {camera: "bag" | "folder" | "derived"}."""
+    from soma_ros.data.masks import cache_key, derive_masks, load_mask_folder
+
+    mc = cfg.masks
+    src: dict[str, str] = {}
+    T = ep.num_frames
+    for c, s in ep.cameras.items():
+        if mc.source == "derive":
+            s.object_mask = s.robot_mask = None
+        if s.object_mask is not None:
+            src[c] = "bag"
+            continue
+        if mc.source == "bag":
+            raise BagError(f"{ep.path.name}: missing topic {cfg.topics.topic('object_mask', s.topics.namespace if s.topics else c)} "
+                           "(data.masks.source: bag)")
+        if mc.folder and mc.source in ("auto", "folder"):
+            om = load_mask_folder(Path(mc.folder), name, c, T, s.height, s.width, "object")
+            if om is not None:
+                s.object_mask = om
+                rm = load_mask_folder(Path(mc.folder), name, c, T, s.height, s.width, "robot")
+                if rm is not None:
+                    s.robot_mask = rm
+                src[c] = "folder"
+                continue
+            if mc.source == "folder":
+                raise BagError(f"{Path(mc.folder) / name / c}: no object_<frame>.png masks for camera '{c}'")
+    todo = [c for c in ep.cameras if c not in src or ep.cameras[c].robot_mask is None]
+    if not todo:
+        return src
+    key = cache_key(ep.path, mc, todo, T, f"{robot.config.urdf}:{cfg.topics.world_frame}")
+    cached = None if mask_cache is None else Path(mask_cache) / f"{ep.path.name}-{key}.npz"
+    if cached is not None and cached.is_file():
+        z = np.load(cached)
+        obj = {c: z[f"object/{c}"] for c in todo}
+        rob = {c: z[f"robot/{c}"] for c in todo}
+    else:
+        from soma_ros.core.robot_meshes import load_link_meshes
+
+        T_wb = world_from_base(ep, robot.base_link, cfg.topics.world_frame)
+        links = {k: T_wb[None] @ v for k, v in fk_np.items()}
+        dm = derive_masks(ep, links, load_link_meshes(robot.config.urdf, mc.robot_geometry), mc, cameras=todo)
+        obj, rob = dm.object_mask, dm.robot_mask
+        if cached is not None:
+            cached.parent.mkdir(parents=True, exist_ok=True)
+            tmp = cached.with_name(cached.stem + ".tmp.npz")
+            np.savez_compressed(tmp, **{f"object/{c}": obj[c] for c in todo}, **{f"robot/{c}": rob[c] for c in todo})
+            tmp.replace(cached)
+    for c in todo:
+        s = ep.cameras[c]
+        if c not in src:
+            s.object_mask = obj[c]
+            src[c] = "derived"
+        if s.robot_mask is None:
+            s.robot_mask = rob[c]
+    return src
+
+
 def prepare_episode(
     bag: Union[str, Path],
     robot: RobotModel,
     cfg: Union[DataConfig, TrainConfig, None] = None,
     base_to_sim: Optional[Sim3] = None,
     name: Optional[str] = None,
+    mask_cache: Optional[Path] = None,
 ) -> EpisodeData:
     """Read one bag into :class:`EpisodeData` (see module docstring).
 
     ``robot``: the rig's robot (float64 recommended). ``cfg``: data section (or a whole
     TrainConfig); defaults if None. ``base_to_sim``: force this robot -> sim similarity
     (e.g. a scene bundle's), else it is computed from the wrist camera as the paper does.
-    Raises :class:`~soma_ros.data.bags.BagError` (one line) for unusable bags.
+    Masks a bag lacks come from ``cfg.masks`` (:func:`episode_masks`; derived ones are cached
+    in ``mask_cache`` when given). Raises :class:`~soma_ros.data.bags.BagError` (one line) for unusable bags.
     """
     if isinstance(cfg, TrainConfig):
         cfg = cfg.data
@@ -321,7 +342,7 @@ def prepare_episode(
     bag = Path(bag)
     topics = topic_config(cfg)
     ep: Episode = read_episode(bag, cameras=cfg.cameras, topics=topics, sync_tolerance_ms=cfg.sync_tolerance_ms,
-                               require_masks=cfg.require_masks, max_frames=cfg.max_frames)
+                               require_masks=cfg.require_masks or cfg.masks.source == "bag", max_frames=cfg.max_frames)
     T = ep.num_frames
     if T < 2:
         raise BagError(f"{bag.name}: only {T} synchronised frame(s); need at least 2")
@@ -333,8 +354,9 @@ def prepare_episode(
         raise BagError(f"{bag.name}: {topics.joint_states}: {exc}") from None
     fk = robot.fk(q)
     fk_np = {k: v.detach().cpu().double().numpy() for k, v in fk.items()}
-    resolve_camera_poses(ep, lambda names, pos: fk_np, robot.base_link, wf)
-    mounts = {c: camera_mount(ep, c, wf) for c in ep.cameras}
+    resolve_camera_poses(ep, lambda names, pos: fk_np, robot.base_link, wf, robot.link_names)
+    mounts = {c: camera_mount(ep, c, wf, robot.link_names) for c in ep.cameras}
+    mask_source = episode_masks(ep, robot, fk_np, cfg, name or bag.name, mask_cache)
 
     # robot -> sim similarity (paper appendix "Transformation of Robot Conditioning")
     if base_to_sim is None:
@@ -397,5 +419,5 @@ def prepare_episode(
         robot_mask=rm_t, loss_mask=om_t & ~rm_t, joint_names=list(ep.joint_names),
         joint_positions=torch.from_numpy(ep.joint_positions), control_points=cps_sim.float(),
         gripper=grip.float(), gripper_opening=opening.float(), ee_pose=ee, base_to_sim=base_to_sim,
-        mounts=mounts, world_frame=wf, wrist_force=wrist_force,
+        mounts=mounts, world_frame=wf, wrist_force=wrist_force, mask_source=mask_source,
     )

@@ -42,6 +42,7 @@ from soma_ros.core.robot import RobotModel
 from soma_ros.evaluation.baselines import RolloutModel
 from soma_ros.training.config import TrainConfig, load_train_config
 from soma_ros.data.dataset import EpisodeRef, load_dataset
+from soma_ros.data.sources import usable_episodes
 from soma_ros.evaluation.ground_truth import GroundTruthError, read_ground_truth_points
 from soma_ros.core.scoring import (
     LOWER_IS_BETTER,
@@ -131,20 +132,27 @@ class EvalContext:
     the data / scene-alignment config of the run, and the per-episode initial splats."""
 
     def __init__(self, data_dir: str | Path, train_cfg: TrainConfig, scene_dir: str | Path,
-                 cache_dir: Optional[str | Path] = None) -> None:
-        self.data_dir = Path(data_dir)
+                 cache_dir: Optional[str | Path] = None, strict: Optional[bool] = None) -> None:
+        # a dataset folder or bag, or several bags (soma_ros.data.sources)
+        self.data_dir = [Path(p) for p in data_dir] if isinstance(data_dir, (list, tuple)) else Path(data_dir)
         self.scene_dir = Path(scene_dir)
         # keep at most two prepared episodes in memory (a paper-preset episode is ~1.6 GB of images)
         self.cfg = dataclasses.replace(train_cfg, data=dataclasses.replace(train_cfg.data, cache_episodes=2))
         self.bundle, self.hierarchy = load_scene(self.scene_dir)
-        self.refs = load_dataset(self.data_dir)
+        dc = self.cfg.data
         robot = RobotModel.from_config(self.cfg.robot, dtype=torch.float64)
+        self.skipped: list[str] = []
+        self.refs = usable_episodes(load_dataset(self.data_dir, test_fraction=dc.split_test_fraction, seed=dc.split_seed),
+                                    robot, dc, self.skipped.append, strict)
         self.store = EpisodeStore(self.refs, robot, self.cfg, self.bundle, self.hierarchy,
                                   None if cache_dir is None else Path(cache_dir))
+        # score the cameras each bag has (another rig's set), posed from its own TF
+        self.store.rig_cameras = False
         self.scene = self.bundle.scene_context()
 
     @staticmethod
-    def from_run(run_dir: str | Path, data_dir: str | Path, scene_dir: Optional[str | Path] = None) -> "EvalContext":
+    def from_run(run_dir: str | Path, data_dir: str | Path, scene_dir: Optional[str | Path] = None,
+                 strict: Optional[bool] = None) -> "EvalContext":
         """Context of a training run folder (``train_config.yaml``, ``scene/``, ``cache/``)."""
         run = Path(run_dir)
         cfg_path = run / "train_config.yaml"
@@ -162,12 +170,12 @@ class EvalContext:
             from soma_ros.core.checkpoint import read_checkpoint
 
             trained_on = read_checkpoint(ck)["extra"].get("dataset")
-            if trained_on and Path(trained_on).resolve() == Path(data_dir).resolve():
+            if trained_on and not isinstance(data_dir, (list, tuple)) and Path(trained_on).resolve() == Path(data_dir).resolve():
                 cache = run / "cache"
-        return EvalContext(data_dir, cfg, scene, cache)
+        return EvalContext(data_dir, cfg, scene, cache, strict)
 
     def episodes(self, split: str, max_episodes: Optional[int] = None) -> list[EpisodeRef]:
-        refs = [r for r in self.refs if r.split == split]
+        refs = [r for r in self.refs if r.in_split(split)]
         if not refs:
             splits = sorted({r.split for r in self.refs})
             raise ValueError(f"{self.data_dir}: no '{split}' episodes (splits: {', '.join(splits)})")
@@ -207,7 +215,8 @@ def evaluate_models(
         model.to(dev)
     lp = load_lpips(device=dev) if cfg.metrics.with_lpips else None
     t_start = time.time()
-    per_model: dict[str, dict] = {n: {"episodes": {}, "rollout_seconds": 0.0, "rollout_frames": 0, "notes": []}
+    per_model: dict[str, dict] = {n: {"episodes": {}, "rollout_seconds": 0.0, "rollout_frames": 0,
+                                     "notes": list(ctx.skipped)}
                                   for n in models}
     bar = None
     total_frames = sum(int(r.frames or 0) for r in refs) * len(models)
@@ -289,7 +298,7 @@ def evaluate_models(
         res = {
             "variant": name,
             "split": split,
-            "dataset": str(ctx.data_dir),
+            "dataset": str(ctx.data_dir) if isinstance(ctx.data_dir, Path) else ";".join(map(str, ctx.data_dir)),
             "scene": str(ctx.scene_dir),
             "model": model.describe(),
             "mean": aggregate_episodes(rec["episodes"]),

@@ -35,6 +35,7 @@ import yaml
 from soma_ros.core.config import ConfigError, from_dict, to_dict
 
 from soma_ros.data.bags import TopicConfig
+from soma_ros.data.masks import MaskConfig
 from soma_ros.paths import resolve_config
 
 __all__ = [
@@ -81,12 +82,21 @@ class DataConfig:
     loss picks the kept checkpoint, ``run.keep``, so it must not be the test split when the
     test split is what the model is scored on). ``tasks``: keep only
     episodes of these tasks (None = all). ``max_*_episodes`` cap the lists.
+    ``require_masks``: a bag without object-mask topics is an error (else ``masks`` says
+    where masks come from, derived from geometry by default: :mod:`soma_ros.data.masks`).
+    ``strict``: a bad bag in a folder is fatal (else it is listed and skipped).
+    ``split_test_fraction`` / ``split_seed``: the train / test split of a dataset without one
+    (:func:`soma_ros.data.sources.default_split`).
     """
 
     cameras: Optional[list[str]] = None
     topics: TopicNames = field(default_factory=TopicNames)
     sync_tolerance_ms: float = 20.0
-    require_masks: bool = True
+    require_masks: bool = False
+    masks: MaskConfig = field(default_factory=MaskConfig)
+    strict: bool = False
+    split_test_fraction: float = 0.3
+    split_seed: int = 0
     resolution_scale: float = 1.0
     max_frames: Optional[int] = None
     train_split: str = "train"
@@ -99,6 +109,9 @@ class DataConfig:
 
     def validate(self, where: str = "data") -> None:
         self.topics.validate(f"{where}.topics")
+        self.masks.validate(f"{where}.masks")
+        if not 0.0 <= self.split_test_fraction < 1.0:
+            raise ConfigError(f"{where}.split_test_fraction: must lie in [0, 1), got {self.split_test_fraction}")
         if not (self.sync_tolerance_ms > 0 and math.isfinite(self.sync_tolerance_ms)):
             raise ConfigError(f"{where}.sync_tolerance_ms: must be > 0, got {self.sync_tolerance_ms}")
         if not (0.05 <= self.resolution_scale <= 4.0):

@@ -65,6 +65,7 @@ from soma_ros.core.splats import Splats
 
 from soma_ros.training.config import TrainConfig, beyond_edge, search_past_edge
 from soma_ros.data.dataset import EpisodeData, EpisodeRef, load_dataset, prepare_episode
+from soma_ros.data.sources import usable_episodes, write_split
 from soma_ros.core.scoring import complete_depth_maps, table_depth
 from soma_ros.scene.files import load_scene, save_scene
 from soma_ros.scene.scene_setup import align_splats, setup_scene
@@ -331,6 +332,8 @@ class EpisodeStore:
         self.bundle = bundle
         self.hierarchy = hierarchy
         self.cache_dir = cache_dir
+        #: True: every episode must have the scene's cameras (training); False: each bag's own (evaluation)
+        self.rig_cameras = True
         self.base_to_sim = bundle.base_to_sim_sim3()
         self._eps: "OrderedDict[str, EpisodeData]" = OrderedDict()
         self._init: dict[str, Splats] = {}
@@ -350,9 +353,10 @@ class EpisodeStore:
             return self._eps[name]
         ref = self.refs[name]
         data = self.cfg.data
-        if data.cameras is None and self.bundle.cameras:  # the rig's cameras: a bag missing one is an error
+        if data.cameras is None and self.bundle.cameras and self.rig_cameras:  # a bag missing one is an error
             data = dataclasses.replace(data, cameras=[c.name for c in self.bundle.cameras])
-        ep = prepare_episode(ref.bag, self.robot, data, base_to_sim=self.base_to_sim, name=name)
+        ep = prepare_episode(ref.bag, self.robot, data, base_to_sim=self.base_to_sim, name=name,
+                             mask_cache=None if self.cache_dir is None else self.cache_dir / "masks")
         self._eps[name] = ep
         while len(self._eps) > self.cfg.data.cache_episodes:
             self._eps.popitem(last=False)
@@ -785,7 +789,11 @@ def train(cfg: TrainConfig, data_dir: Path, out_dir: Path, scene_dir: Optional[P
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1") or 1))
     dist = DistInfo.from_env(cfg.device)
     say = log if dist.is_main else (lambda *a, **k: None)
-    data_dir, out_dir = Path(data_dir), Path(out_dir)
+    if isinstance(data_dir, (list, tuple)):  # several bags (soma_ros.data.sources): one is its path
+        data_dir = Path(data_dir[0]) if len(data_dir) == 1 else [Path(p) for p in data_dir]
+    else:
+        data_dir = Path(data_dir)
+    out_dir = Path(out_dir)
     try:
         return _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist, say)
     finally:
@@ -805,7 +813,7 @@ def _set_up_scene(cfg, scene_dir, scene_out, train_refs, val_refs, robot, obj, m
         if src is None:
             raise ValueError(f"scene.source_episode '{src_name}' is not an episode of {data_dir}")
         t0 = time.time()
-        ep0 = prepare_episode(src.bag, robot, cfg.data, name=src.name)
+        ep0 = prepare_episode(src.bag, robot, cfg.data, name=src.name, mask_cache=scene_out.parent / "cache" / "masks")
         setup = setup_scene(ep0, cfg.scene, obj.name, cfg.robot, obj.total_mass, model_cfg.hierarchy.thresholds,
                             model_cfg.hierarchy.seed_fraction, progress=False)
         save_scene(scene_out, setup.bundle, setup.hierarchy, setup.info)
@@ -820,9 +828,13 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         out_dir.mkdir(parents=True, exist_ok=True)
     dist.barrier()
     dc = cfg.data
-    train_refs = load_dataset(data_dir, dc.train_split, dc.tasks)
+    robot = RobotModel.from_config(cfg.robot, dtype=torch.float64)
+    split_args = dict(test_fraction=dc.split_test_fraction, seed=dc.split_seed)
+    train_refs = usable_episodes(load_dataset(data_dir, dc.train_split, dc.tasks, **split_args), robot, dc, say)
+    if dist.is_main:
+        write_split(out_dir, data_dir, load_dataset(data_dir, **split_args), **split_args)
     if dc.val_split is not None:
-        val_refs = load_dataset(data_dir, dc.val_split, dc.tasks)
+        val_refs = usable_episodes(load_dataset(data_dir, dc.val_split, dc.tasks, **split_args), robot, dc, say)
     else:
         k = min(dc.val_holdout, max(0, len(train_refs) - 1))
         val_refs, train_refs = train_refs[len(train_refs) - k:], train_refs[: len(train_refs) - k]
@@ -832,7 +844,6 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         val_refs = val_refs[: dc.max_val_episodes]
     if not train_refs:
         raise ValueError(f"{data_dir}: no training episodes (split '{dc.train_split}', tasks {dc.tasks})")
-    robot = RobotModel.from_config(cfg.robot, dtype=torch.float64)
     obj = load_object_config(cfg.object)
     model_cfg = cfg.model_config()
 
@@ -921,7 +932,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         save_train_state(payload, state_path)
         info = stage_at(cfg, min(epoch, cfg.schedule.epochs - 1))
         extra = {"iteration": it, "epoch": epoch, "stage": info.stage, "total_iterations": total,
-                 "complete": bool(final and it >= total), "train_config": cfg.name, "dataset": str(data_dir),
+                 "complete": bool(final and it >= total), "train_config": cfg.name, "dataset": str(data_dir) if isinstance(data_dir, Path) else ";".join(map(str, data_dir)),
                  "object": cfg.object, "robot": cfg.robot, "scene": "scene", "dt": float(bundle.dt),
                  "val_loss": last_val, "val_loss_untrained": first_val, "resumed_from": resumed_from,
                  "val_history": val_history,
