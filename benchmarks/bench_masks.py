@@ -5,8 +5,8 @@
 Each bag of each DATASET (reference-world folders, e.g. from `soma world`) is rewritten
 without its mask topics and ``/world/object_points`` (``tools/rig_bags.py --strip-masks``)
 into a temporary folder; the stripped bag goes through the trainer's ingestion
-(:func:`trainer.dataset.prepare_episode`, masks derived from geometry:
-:mod:`trainer.masks`) and its masks are compared, frame by frame at the recorded
+(:func:`soma_ros.data.dataset.prepare_episode`, masks derived from geometry:
+:mod:`soma_ros.data.masks`) and its masks are compared, frame by frame at the recorded
 resolution, with the original bag's mask topics. Printed per object and camera: the
 median (and 10th percentile) IoU over all frames of all episodes, for the object and
 for the robot, and the derivation time per frame; the machine and its load.
@@ -41,11 +41,11 @@ def main(argv=None) -> int:
     from rig_bags import RigForm, rewrite_bag
 
     from soma_ros.core.robot import RobotModel
-    from trainer.bags import read_episode
-    from trainer.config import load_train_config
-    from trainer.dataset import prepare_episode
-    from trainer.masks import mask_iou
-    from trainer.sources import find_bags
+    from soma_ros.data.bags import read_episode
+    from soma_ros.training.config import load_train_config
+    from soma_ros.data.dataset import prepare_episode
+    from soma_ros.data.masks import mask_iou
+    from soma_ros.data.sources import find_bags
 
     torch.set_num_threads(1)
     cfg = load_train_config(a.config)

@@ -46,8 +46,8 @@ def robot():
 
 @pytest.fixture(scope="module")
 def reference(world, robot):
-    from trainer.bags import read_episode
-    from trainer.dataset import prepare_episode
+    from soma_ros.data.bags import read_episode
+    from soma_ros.data.dataset import prepare_episode
 
     return read_episode(world, require_masks=True), prepare_episode(world, robot)
 
@@ -59,7 +59,7 @@ def _one_line(msg: str) -> str:
 
 # --------------------------------------------------------------------------- dataset forms
 def test_folder_without_manifest_one_bag_and_several_bags(world, tmp_path):
-    from trainer.sources import ANY_SPLIT, default_split, load_dataset, write_split
+    from soma_ros.data.sources import ANY_SPLIT, default_split, load_dataset, write_split
 
     d = tmp_path / "recordings"
     for n in ("b_run", "a_run", "nested/c_run", "nested/d_run"):
@@ -81,7 +81,7 @@ def test_folder_without_manifest_one_bag_and_several_bags(world, tmp_path):
 
 
 def test_both_manifest_forms_and_a_wrong_one(world, tmp_path):
-    from trainer.sources import load_dataset
+    from soma_ros.data.sources import load_dataset
 
     d = tmp_path / "ds"
     for n in ("front_0", "front_1", "front_2"):
@@ -105,7 +105,7 @@ def test_both_manifest_forms_and_a_wrong_one(world, tmp_path):
 
 # --------------------------------------------------------------------------- topic discovery
 def test_discovery_of_flat_and_nested_layouts():
-    from trainer.bags import discover_cameras
+    from soma_ros.data.bags import discover_cameras
 
     img, info, comp = "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo", "sensor_msgs/msg/CompressedImage"
     topics = {"/joint_states": "sensor_msgs/msg/JointState",
@@ -126,8 +126,8 @@ def test_renamed_nested_compressed_camera_bag_reads_like_the_original(world, ref
     """Renamed cameras (and frames), a nested namespace, JPEG colour, camera_info only from the
     aligned depth, mcap storage, no masks: same depth, poses and actions; colour within JPEG error;
     masks derived from geometry close to the world's own."""
-    from trainer.dataset import prepare_episode
-    from trainer.masks import mask_iou
+    from soma_ros.data.dataset import prepare_episode
+    from soma_ros.data.masks import mask_iou
 
     form = RigForm(strip_masks=True, rename=RENAME, compressed="jpeg", namespace="rig", info_from_depth=True,
                    storage="mcap")
@@ -151,7 +151,7 @@ def test_renamed_nested_compressed_camera_bag_reads_like_the_original(world, ref
 def test_bgr8_and_32fc1_depth_and_tf_extrinsics(world, reference, robot, tmp_path):
     """bgr8 colour and 32FC1 depth in metres read the same; a fixed camera whose extrinsics arrive
     on /tf instead of /tf_static is placed the same."""
-    from trainer.dataset import prepare_episode
+    from soma_ros.data.dataset import prepare_episode
 
     moved = []
 
@@ -215,8 +215,8 @@ def test_box_rasterizes_to_its_projection():
 def test_user_mask_folder_takes_precedence(world, robot, tmp_path):
     import cv2
 
-    from trainer.config import DataConfig
-    from trainer.dataset import prepare_episode
+    from soma_ros.training.config import DataConfig
+    from soma_ros.data.dataset import prepare_episode
 
     bag = rewrite_bag(world, tmp_path / "nomask", RigForm(strip_masks=True))
     folder = tmp_path / "masks"
@@ -274,9 +274,9 @@ def _bad_bags(world: Path, d: Path) -> dict[str, tuple[Path, str]]:
 
 
 def test_every_bad_bag_class_is_named_and_skipped(world, robot, tmp_path):
-    from trainer.bags import BagError
-    from trainer.config import DataConfig
-    from trainer.sources import load_dataset, probe_bag, usable_episodes
+    from soma_ros.data.bags import BagError
+    from soma_ros.training.config import DataConfig
+    from soma_ros.data.sources import load_dataset, probe_bag, usable_episodes
 
     d = tmp_path / "mixed"
     bad = _bad_bags(world, d)
@@ -296,7 +296,7 @@ def test_every_bad_bag_class_is_named_and_skipped(world, robot, tmp_path):
         usable_episodes(refs, robot, DataConfig(strict=True), log.append)
     assert "strict" in _one_line(str(exc.value))
     # the full reader names the same problems in one line
-    from trainer.dataset import prepare_episode
+    from soma_ros.data.dataset import prepare_episode
 
     for cls in ("no joint states", "unknown joint names", "no TF path", "unsynchronised", "empty", "truncated",
                 "corrupt sqlite3"):

@@ -215,7 +215,7 @@ def main(argv=None) -> int:
     p.add_argument("--storage", choices=["sqlite3", "mcap"], default="sqlite3")
     p.add_argument("--manifest", choices=["none", "plain", "entries"], default="none")
     a = p.parse_args(argv)
-    from trainer.sources import find_bags, is_bag
+    from soma_ros.data.sources import find_bags, is_bag
 
     src = Path(a.src)
     bags = [src] if is_bag(src) else find_bags(src)

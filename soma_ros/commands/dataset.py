@@ -4,7 +4,7 @@
     soma dataset inspect DATA... [same options]
 
 DATA: a folder of rosbag2 directories (with or without manifest.json), one bag, or
-several bags (see :mod:`trainer.sources`). For every bag: its split, the cameras found
+several bags (see :mod:`soma_ros.data.sources`). For every bag: its split, the cameras found
 (topics, colour / depth encodings, rates, frame counts, the worst colour / depth offset
 from the frame clock, the TF path of the camera frame), the joint names against the
 URDF of the config's robot, and the masks' source (bag topics, PNG folder, derived).
@@ -75,10 +75,10 @@ def run(args: argparse.Namespace) -> int:
 
     from soma_ros.commands.train import parse_overrides
     from soma_ros.core.robot import RobotModel
-    from trainer.bags import BagError
-    from trainer.config import load_train_config
-    from trainer.dataset import prepare_episode
-    from trainer.sources import load_dataset, probe_bag
+    from soma_ros.data.bags import BagError
+    from soma_ros.training.config import load_train_config
+    from soma_ros.data.dataset import prepare_episode
+    from soma_ros.data.sources import load_dataset, probe_bag
 
     torch.set_num_threads(1)
     cfg = load_train_config(args.config, parse_overrides(args.set))

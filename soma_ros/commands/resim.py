@@ -25,7 +25,7 @@ Writes into OUT:
   sheets/<episode>.png     contact sheet: measured | simulated | |error| per camera
 
 The cameras simulated and scored are the ones the bag has (found from its topics as
-:func:`trainer.bags.discover_cameras` does: any names, nested namespaces, raw or
+:func:`soma_ros.data.bags.discover_cameras` does: any names, nested namespaces, raw or
 compressed colour), posed from the bag's own TF, so a bag from another camera set
 than the training episodes works. Errors are one line: a missing or non-rosbag2
 bag, a bag without /joint_states, joint names or robot that do not match the
@@ -403,7 +403,7 @@ def resimulate(checkpoint: str, bag: str | Path, out: str | Path, *, run_dir: Op
         raise FileNotFoundError(f"scene bundle not found: {scene_dir}")
     bundle = SceneBundle.load(scene_dir)
     # the cameras the bag has (any names, flat or nested namespaces), not the training rig's
-    from trainer.bags import discover_cameras
+    from soma_ros.data.bags import discover_cameras
 
     scan = scan_bag(bag, topics.joint_states, {})
     bag_cams = discover_cameras(scan.topics, topics)
