@@ -20,7 +20,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     src.add_argument("--bag", help="an episode bag directory (rosbag2)")
     p.add_argument("--holdout-view", type=int, default=None, help="capture view to hold out and evaluate")
     p.add_argument("--iters", type=int, default=None,
-                   help="photometric optimisation iterations (capture: 300; bag: the config's scene.photometric_iters)")
+                   help="photometric optimisation iterations (capture: the preset's; bag: the config's "
+                        "scene.photometric_iters)")
+    p.add_argument("--quality", action="store_true",
+                   help="with --capture: the GPU-sized fit preset (config/reconstruct/quality.yaml) instead of the "
+                        "CPU-sized default (cpu.yaml)")
+    p.add_argument("--fit-config", default=None, metavar="YAML",
+                   help="with --capture: a fit settings file (keys of soma_ros.scene.splat_fit.FitConfig) instead of a preset")
     p.add_argument("--resolution-scale", type=float, default=1.0, help="image scale used for fitting")
     p.add_argument("--robot", default="panda", help="robot config (for a bag's wrist camera)")
     p.add_argument("--config", default=None, help="train config whose data/scene sections apply to a bag (tiny, paper, "
@@ -42,15 +48,21 @@ def run(args: argparse.Namespace) -> int:
     if args.capture:
         from soma_ros.scene.reconstruct import reconstruct_capture
 
-        metrics = reconstruct_capture(Path(args.capture), out, holdout=args.holdout_view,
-                                      iters=300 if args.iters is None else args.iters,
-                                      scale=args.resolution_scale, progress=not args.quiet)
+        if args.quality and args.fit_config:
+            raise ValueError("give --quality or --fit-config, not both")
+        preset = args.fit_config or ("quality" if args.quality else "cpu")
+        metrics = reconstruct_capture(Path(args.capture), out, holdout=args.holdout_view, iters=args.iters,
+                                      scale=args.resolution_scale, progress=not args.quiet, preset=preset,
+                                      overrides={"seed": int(args.seed)})
         print(json.dumps(metrics, indent=2))
         return 0
     from soma_ros.scene.reconstruct import reconstruct_bag
 
     if args.holdout_view is not None:
         raise ValueError("--holdout-view applies to --capture folders, not to --bag")
+    if args.quality or args.fit_config:
+        raise ValueError("--quality and --fit-config apply to --capture folders; a bag's fit follows its train "
+                         "config's scene section")
     info = reconstruct_bag(Path(args.bag), out, robot=args.robot, object_name=args.object, iters=args.iters,
                            progress=not args.quiet, config=args.config,
                            ply=Path(args.ply) if args.ply else None)

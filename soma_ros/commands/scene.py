@@ -31,6 +31,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--out", required=True, help="output .ply")
     m.set_defaults(func=run_synth)
 
+    from .scene_align import register as register_align
+
+    register_align(s)
+
 
 def run_synth(args: argparse.Namespace) -> int:
     from ..core.ply import write_ply

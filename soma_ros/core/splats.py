@@ -32,7 +32,7 @@ from .geometry import covariance_from_scale_rot, quat_normalize
 
 SH_C0 = 0.28209479177387814
 
-__all__ = ["Splats", "SH_C0", "rgb_to_sh_dc", "sh_dc_to_rgb"]
+__all__ = ["Splats", "SH_C0", "rgb_to_sh_dc", "sh_dc_to_rgb", "sh_degree_of", "view_dependent_colors"]
 
 
 def sh_dc_to_rgb(sh_dc: torch.Tensor) -> torch.Tensor:
@@ -43,6 +43,49 @@ def sh_dc_to_rgb(sh_dc: torch.Tensor) -> torch.Tensor:
 def rgb_to_sh_dc(rgb: torch.Tensor) -> torch.Tensor:
     """RGB in [0, 1] [..., 3] -> SH DC coefficients."""
     return (rgb - 0.5) / SH_C0
+
+
+def sh_degree_of(sh_rest: torch.Tensor) -> int:
+    """Highest complete SH degree that ``sh_rest`` [N, K, 3] holds (K = 0, 3, 8, 15 -> 0..3)."""
+    k = int(sh_rest.shape[1])
+    for degree in (3, 2, 1):
+        if k >= (degree + 1) ** 2 - 1:
+            return degree
+    return 0
+
+
+def view_dependent_colors(means: torch.Tensor, sh_dc: torch.Tensor, sh_rest: torch.Tensor, centres: torch.Tensor,
+                          degree: Optional[int] = None) -> torch.Tensor:
+    """RGB of every splat as seen from each of C camera centres, evaluated before rasterising.
+
+    Args:
+        means: [N, 3] splat centres; sh_dc: [N, 3]; sh_rest: [N, K, 3] higher SH bands;
+        centres: [C, 3] camera centres, same frame as ``means``;
+        degree: SH degree 0..3 (None: the highest that ``sh_rest`` holds).
+    Returns:
+        [C, N, 3] colours in [0, 1] (3DGS basis and sign convention, viewing direction =
+        camera centre -> splat), differentiable w.r.t. means, sh_dc and sh_rest; the
+        per-camera colours that :func:`soma_ros.core.render.render` accepts. Degree 0 gives
+        ``sh_dc_to_rgb(sh_dc)`` for every camera.
+    """
+    from .render import eval_sh
+
+    n = means.shape[0]
+    if means.ndim != 2 or means.shape[1] != 3:
+        raise ValueError(f"view_dependent_colors: means must be [N, 3], got {list(means.shape)}")
+    if tuple(sh_dc.shape) != (n, 3) or sh_rest.ndim != 3 or sh_rest.shape[0] != n or sh_rest.shape[2] != 3:
+        raise ValueError(f"view_dependent_colors: sh_dc must be [{n}, 3] and sh_rest [{n}, K, 3], got "
+                         f"{list(sh_dc.shape)} and {list(sh_rest.shape)}")
+    if centres.ndim != 2 or centres.shape[1] != 3:
+        raise ValueError(f"view_dependent_colors: centres must be [C, 3], got {list(centres.shape)}")
+    degree = sh_degree_of(sh_rest) if degree is None else int(degree)
+    if degree == 0:
+        return sh_dc_to_rgb(sh_dc)[None].expand(centres.shape[0], n, 3)
+    dirs = means[None, :, :] - centres.to(means)[:, None, :]  # [C, N, 3]
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    out = eval_sh(sh_dc, sh_rest, dirs, degree)
+    assert out.shape == (centres.shape[0], n, 3)
+    return out
 
 
 @dataclass
@@ -140,6 +183,10 @@ class Splats:
     def colors(self) -> torch.Tensor:
         """View-independent RGB [N, 3] in [0, 1] (SH degree 0)."""
         return sh_dc_to_rgb(self.sh_dc)
+
+    def colors_seen_from(self, centres: torch.Tensor, degree: Optional[int] = None) -> torch.Tensor:
+        """View-dependent RGB [C, N, 3] from camera centres [C, 3] (see :func:`view_dependent_colors`)."""
+        return view_dependent_colors(self.means, self.sh_dc, self.sh_rest, centres, degree)
 
     def covariances(self) -> torch.Tensor:
         """3D covariances [N, 3, 3] = R diag(scales^2) R^T."""

@@ -11,67 +11,86 @@ from typing import Optional
 import numpy as np
 import torch
 
-from soma_ros.scene.capture import FitConfig, fit_splats, initial_splats_from_capture, read_capture
+from soma_ros.scene.capture import fit_splats, initial_splats_from_capture, read_capture
 
 
 def _save_rgb(path: Path, rgb01: np.ndarray) -> None:
-    import cv2
+    from soma_ros.scene.recon_report import save_rgb
 
-    cv2.imwrite(str(path), (np.clip(rgb01, 0, 1) * 255).round().astype(np.uint8)[..., ::-1])
+    save_rgb(path, rgb01)
 
 
-def reconstruct_capture(folder: Path, out: Path, holdout: Optional[int] = None, iters: int = 300,
-                        scale: float = 0.5, progress: bool = True) -> dict:
-    """Fit splats on every view but `holdout`; render the held-out view and score it.
+def reconstruct_capture(folder: Path, out: Path, holdout: Optional[int] = None, iters: Optional[int] = None,
+                        scale: float = 1.0, progress: bool = True, preset: str = "cpu",
+                        overrides: Optional[dict] = None) -> dict:
+    """Fit splats on every view but `holdout` (:func:`soma_ros.scene.splat_fit.fit_splats`, settings from
+    ``preset``: cpu, quality or a YAML path; ``iters`` and ``overrides`` on top) and score every view.
 
-    Writes OUT/splats.ply, OUT/metrics.json (psnr_holdout: masked PSNR of the
-    held-out view at full resolution), OUT/holdout_render.png,
-    OUT/holdout_compare.png (measured | rendered | |error|).
+    Initial splats: the capture's object points (or the visual hull of the training masks);
+    depth supervision: the capture's depth images where it has them, else its object points
+    projected into the training views. Writes into OUT: splats.ply; metrics.json (per view:
+    masked PSNR, object-pixel SSIM, protocol PSNR / SSIM / LPIPS, its role; ``psnr_holdout``,
+    ``psnr_train_views``; fit settings, history, wall and CPU seconds); contact_sheet.png
+    (measured | rendered | |error| x 4, one row per view, held-out last); fit_history.png
+    (splat count and check-pixel PSNR over the fit); holdout_render.png and
+    holdout_compare.png with a held-out view.
     """
-    from soma_ros.core.metrics import masked_psnr
     from soma_ros.core.ply import write_ply
-    from soma_ros.core.render import render_splats
 
-    t0 = time.time()
+    from soma_ros.scene.recon_report import contact_sheet, plot_fit_history, render_views, view_metrics
+    from soma_ros.scene.splat_fit import load_fit_config
+
+    t0, c0 = time.time(), time.process_time()
     views = read_capture(folder)
     V = views.num_views
     if holdout is not None and not 0 <= holdout < V:
         raise ValueError(f"--holdout-view {holdout} is out of range: the capture has {V} views")
     train_idx = [i for i in range(V) if i != holdout]
+    cfg = load_fit_config(preset, overrides)
+    if iters is not None:
+        cfg.iters = int(iters)
     init = initial_splats_from_capture(views, train_idx)
-    cfg = FitConfig(iters=iters)  # defaults tuned for novel views (see FitConfig)
-    fit_views = views.select(train_idx).resized(scale)
-    bg = torch.zeros(3)
+    fit_views = views.select(train_idx)
+    depth_source = "capture depth" if fit_views.depth is not None else None
+    if fit_views.depth is None and views.points is not None:
+        fit_views = fit_views.with_point_depth()
+        depth_source = "capture points projected into the training views"
+    fit_views = fit_views.resized(scale)
     fitted = fit_splats(init, fit_views, cfg, progress=progress)
+    cpu_fit = time.process_time() - c0
+    wall_fit = time.time() - t0
     write_ply(out / "splats.ply", fitted)
+    order = train_idx + ([holdout] if holdout is not None else [])
+    ov = views.select(order)
+    roles = {k: ("held-out" if i == holdout else "train") for k, i in enumerate(order)}
+    ren = render_views(fitted, ov)
+    rows = view_metrics(ren, ov, names=[f"view_{i}" for i in order], roles=roles)
+    ren0 = render_views(init, ov)
+    for r, r0 in zip(rows, view_metrics(ren0, ov, with_lpips=False)):
+        r["psnr_masked_init"] = r0["psnr_masked"]
+    contact_sheet(out / "contact_sheet.png", ren, ov)
+    plot_fit_history(out / "fit_history.png", cfg.history, title=f"{Path(folder).name}: splats over the fit")
     metrics: dict = {"capture": str(folder), "views": V, "train_views": train_idx, "holdout_view": holdout,
-                     "num_splats": len(fitted), "iters": iters, "fit_resolution_scale": scale,
+                     "num_splats_init": len(init), "num_splats": len(fitted), "preset": str(preset),
+                     "iters": cfg.iters, "fit_resolution_scale": scale, "depth_supervision": depth_source,
+                     "early_stop": cfg.best, "per_view": rows,
+                     "psnr_train_views": [r["psnr_masked"] for r in rows if r["role"] == "train"],
+                     "seconds_fit": round(wall_fit, 1), "cpu_seconds_fit": round(cpu_fit, 1),
                      "fit_config": {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("history", "best")},
-                     "loss_history": cfg.history}
+                     "fit_history": cfg.history}
     if holdout is not None:
-        hv = views.select([holdout])
-        with torch.no_grad():
-            ren = render_splats(fitted, hv.cameras, background=bg)
-            ren0 = render_splats(init, hv.cameras, background=bg)
-        gt = hv.images[0]
-        m = hv.masks[0]
-        metrics["psnr_holdout"] = float(masked_psnr(ren.rgb[0], gt, m))
-        metrics["psnr_holdout_init"] = float(masked_psnr(ren0.rgb[0], gt, m))
-        train_psnr = []
-        for i in train_idx:
-            tv = views.select([i])
-            with torch.no_grad():
-                r = render_splats(fitted, tv.cameras, background=bg)
-            train_psnr.append(float(masked_psnr(r.rgb[0], tv.images[0], tv.masks[0])))
-        metrics["psnr_train_views"] = train_psnr
-        gt_masked = (gt * m[..., None]).numpy()
-        rr = ren.rgb[0].numpy()
+        h = rows[-1]
+        metrics["psnr_holdout"] = h["psnr_masked"]
+        metrics["psnr_holdout_init"] = h["psnr_masked_init"]
+        m = ov.masks[-1]
+        gt_masked = (ov.images[-1] * m[..., None]).numpy()
+        rr = ren[-1].numpy()
         err = np.abs(rr * m[..., None].numpy() - gt_masked).mean(-1, keepdims=True).repeat(3, -1) * 4
         _save_rgb(out / "holdout_render.png", rr)
         _save_rgb(out / "holdout_compare.png", np.concatenate([gt_masked, rr * m[..., None].numpy(), err], axis=1))
     metrics["seconds"] = round(time.time() - t0, 1)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    return {k: v for k, v in metrics.items() if k != "loss_history"}
+    return {k: v for k, v in metrics.items() if k not in ("fit_history", "fit_config")}
 
 
 def reconstruct_bag(bag: Path, out: Path, robot: str = "panda", object_name: str = "rope", iters: Optional[int] = None,
