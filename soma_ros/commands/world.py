@@ -43,9 +43,13 @@ Topics in each bag (one header stamp per frame, 30 FPS):
   /<cam>/color/image_raw                         sensor_msgs/Image rgb8
   /<cam>/color/camera_info                       sensor_msgs/CameraInfo plumb_bob
   /<cam>/aligned_depth_to_color/image_raw        sensor_msgs/Image 16UC1 (mm, 0 = none)
+  /<cam>/aligned_depth_to_color/camera_info      sensor_msgs/CameraInfo (the colour one's)
   /<cam>/object_mask, /<cam>/robot_mask          sensor_msgs/Image mono8 (255 = yes)
   /tf_static                                     tf2_msgs/TFMessage (world -> base link,
                                                  world -> fixed cameras, hand -> wrist camera)
+  /tf                                            tf2_msgs/TFMessage (every URDF joint from the
+                                                 joint state, as robot_state_publisher)
+  /robot_description                             std_msgs/String URDF (latched)
   /world/object_points                           sensor_msgs/PointCloud2 x,y,z in world:
                                                  ground truth, EVALUATION-ONLY, training
                                                  code must never read it

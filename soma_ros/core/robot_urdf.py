@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Optional, Union
 from .errors import RobotError
 
-__all__ = ["URDFError", "Mimic", "UrdfJoint", "UrdfModel", "parse_urdf", "MOVABLE_TYPES"]
+__all__ = ["URDFError", "Mimic", "UrdfJoint", "UrdfModel", "parse_urdf", "MOVABLE_TYPES", "resolve_mesh_path"]
 
 #: joint types whose value changes the kinematics and that FK supports
 MOVABLE_TYPES = ("revolute", "continuous", "prismatic")
@@ -326,3 +326,29 @@ def parse_urdf(source: Union[str, Path], *, text: Optional[str] = None) -> UrdfM
             seen.add(cur.mimic.leader)
             cur = joints[cur.mimic.leader]
     return model
+
+
+def resolve_mesh_path(filename: str, urdf_dir: Path) -> Path:
+    """A URDF mesh reference (``package://pkg/rel``, ``file://``, relative) as an existing file."""
+    cands: list[Path] = []
+    if filename.startswith("package://"):
+        rest = filename[len("package://") :]
+        parts = Path(rest).parts
+        # package://<pkg>/<rel>: <pkg> is the URDF's folder (or an ancestor), or a folder beside it.
+        cands.append(urdf_dir / rest)
+        if len(parts) > 1:
+            rel = Path(*parts[1:])
+            cands.append(urdf_dir / rel)
+            for anc in [urdf_dir, *urdf_dir.parents]:
+                if anc.name == parts[0]:
+                    cands.append(anc / rel)
+                cands.append(anc / parts[0] / rel)
+    elif filename.startswith("file://"):
+        cands.append(Path(filename[len("file://") :]))
+    else:
+        p = Path(filename)
+        cands += [p if p.is_absolute() else urdf_dir / p]
+    for c in cands:
+        if c.is_file():
+            return c.resolve()
+    raise FileNotFoundError(f"URDF mesh not found: {filename} (relative to {urdf_dir})")

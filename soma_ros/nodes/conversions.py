@@ -73,10 +73,14 @@ def image_rgb8(rgb: np.ndarray, frame_id: str, stamp: Time) -> Image:
 
 
 def image_depth32(depth_m: np.ndarray, frame_id: str, stamp: Time) -> Image:
-    """float32 [H, W] metres -> sensor_msgs/Image 32FC1 (REP-118: NaN/0 = no return)."""
+    """float32 [H, W] metres -> sensor_msgs/Image 32FC1. A pixel with no surface (depth <= 0,
+    as the renderer writes where nothing was drawn, or non-finite) becomes NaN: REP 118's
+    "no return", which depth_image_proc and PCL skip (a 0 would be a point at the camera);
+    +inf ("too far" in REP 118) stays."""
     if depth_m.ndim != 2:
         raise ValueError(f"depth image must be [H, W], got {depth_m.shape}")
-    d = np.ascontiguousarray(depth_m, dtype=np.float32)
+    d = np.array(depth_m, dtype=np.float32, order="C")
+    d[~(d > 0)] = np.nan
     h, w = d.shape
     return Image(header=Header(frame_id=frame_id, stamp=stamp), height=h, width=w, encoding="32FC1",
                  is_bigendian=0, step=4 * w, data=d.tobytes())

@@ -7,11 +7,12 @@ Topics (``<p>`` = the `topic_prefix` parameter, default /soma):
 
   sub  /joint_states             sensor_msgs/JointState  sensor-data QoS (reliable publishers work too)
   pub  <p>/<cam>/image_raw       sensor_msgs/Image rgb8
-  pub  <p>/<cam>/depth           sensor_msgs/Image 32FC1, metres (0 = no splat)
-  pub  <p>/<cam>/camera_info     sensor_msgs/CameraInfo
+  pub  <p>/<cam>/depth           sensor_msgs/Image 32FC1, metres (NaN = no splat, REP 118)
+  pub  <p>/<cam>/camera_info     sensor_msgs/CameraInfo (of the image and of the aligned depth)
   pub  <p>/splats                sensor_msgs/PointCloud2, soma_msgs/SplatLayout with packed rgb
   pub  <p>/status                soma_msgs/SimStatus
-  pub  /tf, /tf_static           <world_frame> -> <sim_frame> (static), camera optical frames
+  pub  /tf, /tf_static           one tree: world -> sim frame, cameras, robot links (:mod:`.robot_tf`)
+  pub  /robot_description        std_msgs/String, transient local (with publish_robot_tf)
   srv  <p>/reset                 soma_msgs/srv/ResetScene
 
 Start: ``soma_sim_node --ros-args -p checkpoint:=RUN/checkpoint.pt -p scene:=RUN/scene``
@@ -55,7 +56,6 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, JointState, PointCloud2
 from soma_msgs.msg import SimStatus
 from soma_msgs.srv import ResetScene
-from tf2_msgs.msg import TFMessage
 
 from ..core.cloud_layout import REQUIRED_FIELDS, SPLAT_FIELDS
 from ..core.scene_guard import (
@@ -73,13 +73,13 @@ from .conversions import (
     cloud_to_splats_msg,
     image_depth32,
     image_rgb8,
-    matrix_to_tf,
     ns_from_stamp,
     splats_to_cloud,
     stamp_from_ns,
 )
 from .loops import FixedRateLoop
-from .qos import JOINT_STATES_QOS, LATCHED_QOS, SENSOR_OUT_QOS, STATUS_QOS
+from .robot_tf import RobotTf, camera_frame_id
+from .qos import JOINT_STATES_QOS, SENSOR_OUT_QOS, STATUS_QOS
 
 
 class Frame(NamedTuple):
@@ -137,6 +137,9 @@ class SomaSimNode(Node):
         p("sim_frame", "soma_sim", ParameterDescriptor(description="frame of the simulated splats (identity to the scene's frame)"))
         p("topic_prefix", "/soma", ParameterDescriptor(description="prefix of published topics and the reset service"))
         p("torch_threads", 1, ParameterDescriptor(description="torch intra-op threads (1 beside other work)"))
+        p("publish_robot_tf", True, ParameterDescriptor(
+            description="publish the robot's links on /tf and /robot_description as robot_state_publisher does "
+                        "(false when the real robot's robot_state_publisher runs beside the node)"))
         self.rate_hz = _float_param(self, "rate_hz", 30.0, "physics step rate, Hz", 0.5, 1000.0)
         self.render_rate_hz = _float_param(self, "render_rate_hz", 10.0, "image publish rate, Hz (0 = no images)", 0.0, 120.0)
         self.splat_rate_hz = _float_param(self, "splat_rate_hz", 5.0, "splat cloud publish rate, Hz (0 = none)", 0.0, 120.0)
@@ -231,8 +234,6 @@ class SomaSimNode(Node):
 
         self.pub_splats = self.create_publisher(PointCloud2, f"{prefix}/splats", SENSOR_OUT_QOS)
         self.pub_status = self.create_publisher(SimStatus, f"{prefix}/status", STATUS_QOS)
-        self.pub_tf = self.create_publisher(TFMessage, "/tf", 100)
-        self.pub_tf_static = self.create_publisher(TFMessage, "/tf_static", LATCHED_QOS)
         self.pub_img, self.pub_depth, self.pub_info = {}, {}, {}
         for c in self.live.cameras:
             self.pub_img[c.name] = self.create_publisher(Image, f"{prefix}/{c.name}/image_raw", SENSOR_OUT_QOS)
@@ -252,7 +253,7 @@ class SomaSimNode(Node):
         self._commit_lock = threading.Lock()  # a reset's commit against its abandonment on timeout
         self._stopping = threading.Event()
 
-        self._publish_static_tf()
+        self.robot_tf = RobotTf(self, self.live, self.world_frame, self.sim_frame, bool(gp("publish_robot_tf")))
         self._step_ms = 0.0
         self._render_ms = 0.0
         self._lag_ms = 0.0
@@ -261,7 +262,8 @@ class SomaSimNode(Node):
         self._step_lock = threading.Lock()
         self._failure_resets = 0
         self._set_frame(None)
-        self.loops = [FixedRateLoop("soma_step", self.rate_hz, self._on_step)]
+        self.loops = [FixedRateLoop("soma_step", self.rate_hz, self._on_step),
+                      FixedRateLoop("soma_tf", self.rate_hz, self._on_tf)]
         if self.render_rate_hz > 0:
             self.loops.append(FixedRateLoop("soma_render", self.render_rate_hz, self._on_render))
         if self.splat_rate_hz > 0:
@@ -469,15 +471,11 @@ class SomaSimNode(Node):
         stamp = stamp_from_ns(frame.stamp_ns)
         rgb = (out.rgb.clamp(0, 1) * 255).round().to(dtype=__import__("torch").uint8).cpu().numpy()
         depth = out.depth.cpu().numpy()
-        c2w = cams.cam_to_world().cpu().numpy()
-        tfs = []
         for i, c in enumerate(self.live.cameras):
-            frame = f"{self.sim_frame}/{c.name}_optical"
+            frame = camera_frame_id(self.sim_frame, c.name)
             self.pub_img[c.name].publish(image_rgb8(rgb[i], frame, stamp))
             self.pub_depth[c.name].publish(image_depth32(depth[i], frame, stamp))
             self.pub_info[c.name].publish(camera_info(cams.K[i].cpu().numpy(), cams.width, cams.height, frame, stamp))
-            tfs.append(matrix_to_tf(c2w[i], self.sim_frame, frame, stamp))
-        self.pub_tf.publish(TFMessage(transforms=tfs))
         self._image_rate.tick()
 
     def _on_splats(self) -> None:
@@ -489,9 +487,12 @@ class SomaSimNode(Node):
         except Exception as exc:  # noqa: BLE001 - as for renders
             self.get_logger().error(f"splat publish failed: {exc}", throttle_duration_sec=5.0)
 
-    def _publish_static_tf(self) -> None:
-        stamp = self.get_clock().now().to_msg()
-        self.pub_tf_static.publish(TFMessage(transforms=[matrix_to_tf(np.eye(4), self.world_frame, self.sim_frame, stamp)]))
+    def _on_tf(self) -> None:
+        try:
+            frame = self._frame  # the robot links of the step the images show, with its stamp
+            self.robot_tf.publish(frame.joint_vec, frame.stamp_ns)
+        except Exception as exc:  # noqa: BLE001 - as for renders
+            self.get_logger().error(f"tf publish failed: {exc}", throttle_duration_sec=5.0)
 
 
 def main(argv: Optional[list[str]] = None) -> int:

@@ -9,12 +9,22 @@ topic                                        type                         encodi
 /joint_states                                sensor_msgs/JointState       (effort: external torques)
 /<cam>/color/image_raw                       sensor_msgs/Image            rgb8
 /<cam>/color/camera_info                     sensor_msgs/CameraInfo       plumb_bob
-/<cam>/aligned_depth_to_color/image_raw      sensor_msgs/Image            16UC1 (mm)
+/<cam>/aligned_depth_to_color/image_raw      sensor_msgs/Image            16UC1 (mm, 0 = no return)
+/<cam>/aligned_depth_to_color/camera_info    sensor_msgs/CameraInfo       plumb_bob (the colour one's)
 /<cam>/object_mask                           sensor_msgs/Image            mono8
 /<cam>/robot_mask                            sensor_msgs/Image            mono8
 /tf_static                                   tf2_msgs/TFMessage           (once, latched)
+/tf                                          tf2_msgs/TFMessage           every URDF joint, each frame
+/robot_description                           std_msgs/String              URDF (once, latched)
 /world/object_points                         sensor_msgs/PointCloud2      x,y,z float32
 ===========================================  ===========================  ==========
+
+``/tf`` carries the robot's links from the frame's joint state, as
+robot_state_publisher computes them (:class:`~soma_ros.core.robot_frames.RobotFrames`);
+its fixed joints are on ``/tf`` too, so ``/tf_static`` keeps only world -> robot base and
+the cameras, and a camera's static chain ends at the link it is mounted on. The
+depth is aligned to the colour image, so its camera_info is the colour one's
+(what the RealSense driver publishes).
 
 ``/world/object_points`` carries the object's ground-truth vertices in
 `world`. It is EVALUATION-ONLY: training code must never read it.
@@ -41,6 +51,8 @@ STORAGES = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}
 #: Ground truth, evaluation only.
 OBJECT_POINTS_TOPIC = "/world/object_points"
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+#: Topics recorded as a latched publisher offers them (written once).
+LATCHED_TOPICS = ("/tf_static", "/robot_description")
 
 _T = TYPESTORE.types
 _Header = _T["std_msgs/msg/Header"]
@@ -61,12 +73,15 @@ def topics_for(cameras: Sequence[str]) -> dict[str, str]:
     t = {
         "/joint_states": "sensor_msgs/msg/JointState",
         "/tf_static": "tf2_msgs/msg/TFMessage",
+        "/tf": "tf2_msgs/msg/TFMessage",
+        "/robot_description": "std_msgs/msg/String",
         OBJECT_POINTS_TOPIC: "sensor_msgs/msg/PointCloud2",
     }
     for c in cameras:
         t[f"/{c}/color/image_raw"] = "sensor_msgs/msg/Image"
         t[f"/{c}/color/camera_info"] = "sensor_msgs/msg/CameraInfo"
         t[f"/{c}/aligned_depth_to_color/image_raw"] = "sensor_msgs/msg/Image"
+        t[f"/{c}/aligned_depth_to_color/camera_info"] = "sensor_msgs/msg/CameraInfo"
         t[f"/{c}/object_mask"] = "sensor_msgs/msg/Image"
         t[f"/{c}/robot_mask"] = "sensor_msgs/msg/Image"
     return t
@@ -114,7 +129,7 @@ class BagRecorder:
     def __enter__(self) -> "BagRecorder":
         self._writer.open()
         for topic, msgtype in topics_for(self.cameras).items():
-            qos = QOS_LATCHED if topic == "/tf_static" else QOS_SENSOR
+            qos = QOS_LATCHED if topic in LATCHED_TOPICS else QOS_SENSOR
             self._conns[topic] = self._writer.add_connection(
                 topic, msgtype, typestore=TYPESTORE, offered_qos_profiles=[qos]
             )
@@ -132,6 +147,10 @@ class BagRecorder:
         msg = _T["tf2_msgs/msg/TFMessage"](transforms=[_transform(stamp_ns, p, c, T) for p, c, T in transforms])
         self._write("/tf_static", stamp_ns, msg)
 
+    def write_robot_description(self, stamp_ns: int, urdf_text: str) -> None:
+        """The latched /robot_description (the URDF's text)."""
+        self._write("/robot_description", stamp_ns, _T["std_msgs/msg/String"](data=str(urdf_text)))
+
     def write_frame(
         self,
         stamp_ns: int,
@@ -142,8 +161,10 @@ class BagRecorder:
         frames: dict[str, CameraFrame],
         K: np.ndarray,
         object_points: np.ndarray,
+        link_tf: Sequence[tuple[str, str, np.ndarray]] = (),
     ) -> None:
-        """All messages of one frame, with one stamp. ``K`` [3, 3] is shared by the cameras."""
+        """All messages of one frame, with one stamp. ``K`` [3, 3] is shared by the cameras;
+        ``link_tf``: (parent, child, T [4, 4]) of the robot's joints, on /tf."""
         js = _T["sensor_msgs/msg/JointState"](
             header=_header(stamp_ns, ""),
             name=list(joint_names),
@@ -152,6 +173,9 @@ class BagRecorder:
             effort=np.asarray(effort, np.float64),
         )
         self._write("/joint_states", stamp_ns, js)
+        if link_tf:
+            tf = _T["tf2_msgs/msg/TFMessage"](transforms=[_transform(stamp_ns, p, c, T) for p, c, T in link_tf])
+            self._write("/tf", stamp_ns, tf)
         for cam in self.cameras:
             fr = frames[cam]
             fid = optical_frame_id(cam)
@@ -166,6 +190,7 @@ class BagRecorder:
             )
             self._write(f"/{cam}/color/image_raw", stamp_ns, _image(stamp_ns, fid, fr.rgb, "rgb8"))
             self._write(f"/{cam}/color/camera_info", stamp_ns, info)
+            self._write(f"/{cam}/aligned_depth_to_color/camera_info", stamp_ns, info)
             self._write(
                 f"/{cam}/aligned_depth_to_color/image_raw", stamp_ns,
                 _image(stamp_ns, fid, fr.depth_mm.astype("<u2"), "16UC1"),

@@ -31,6 +31,7 @@ import mujoco
 import numpy as np
 from tqdm import tqdm
 
+from ..core.robot_frames import RobotFrames, robot_description
 from .bag import OBJECT_POINTS_TOPIC, BagRecorder, topics_for
 from .config import WorldConfig
 from .contact_sheet import ContactSheet, sample_frames
@@ -155,6 +156,8 @@ def generate_episode(
         tf_static = [("world", rc.base_link, scene.base_T), (rc.wrist_camera.parent, optical_frame_id("cam_wrist"), scene.wrist_T)]
         tf_static += [("world", optical_frame_id(c), scene.camera_T[c]) for c in ("cam_front", "cam_side")]
         rig = CameraRig(scene, pre.width, pre.height)
+        links = RobotFrames(rc.urdf_path())
+        link_static = links.static_transforms()
         created = not bag_dir.exists()
         try:
             with BagRecorder(bag_dir, CAMERA_NAMES, storage) as bag:
@@ -163,8 +166,12 @@ def generate_episode(
                     stamp = stamp0 + int(round(fs.index * period_ns))
                     if fs.index == 0:
                         bag.write_tf_static(stamp, tf_static)
+                        bag.write_robot_description(stamp, robot_description(rc.urdf_path()))
                     cams = rig.render_all(scene.data)
-                    bag.write_frame(stamp, sim.joint_names, fs.position, fs.velocity, fs.effort, cams, rig.K, fs.object_points)
+                    link_tf = link_static + [(p, c, T[0]) for p, c, T in
+                                             links.moving_transforms(sim.joint_names, fs.position)]
+                    bag.write_frame(stamp, sim.joint_names, fs.position, fs.velocity, fs.effort, cams, rig.K,
+                                    fs.object_points, link_tf)
                     if sheet.wants(fs.index):
                         sheet.add(fs.index, cams)
                     wrist_poses.append(_pose7(fs.wrist_T))

@@ -15,6 +15,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from ..core.robot_urdf import resolve_mesh_path
 from .config import RobotConfig
 from .transforms import so3_log
 
@@ -35,32 +36,6 @@ ROBOT_PREFIX = "robot/"
 
 #: contype bit of gripper geoms; the object's conaffinity includes it, the table's does not.
 CONTACT_BIT_GRIPPER = 2
-
-
-def resolve_mesh_path(filename: str, urdf_dir: Path) -> Path:
-    """A URDF mesh reference (``package://pkg/rel``, ``file://``, relative) as an existing file."""
-    cands: list[Path] = []
-    if filename.startswith("package://"):
-        rest = filename[len("package://") :]
-        parts = Path(rest).parts
-        # package://<pkg>/<rel>: <pkg> is the URDF's folder (or an ancestor), or a folder beside it.
-        cands.append(urdf_dir / rest)
-        if len(parts) > 1:
-            rel = Path(*parts[1:])
-            cands.append(urdf_dir / rel)
-            for anc in [urdf_dir, *urdf_dir.parents]:
-                if anc.name == parts[0]:
-                    cands.append(anc / rel)
-                cands.append(anc / parts[0] / rel)
-    elif filename.startswith("file://"):
-        cands.append(Path(filename[len("file://") :]))
-    else:
-        p = Path(filename)
-        cands += [p if p.is_absolute() else urdf_dir / p]
-    for c in cands:
-        if c.is_file():
-            return c.resolve()
-    raise FileNotFoundError(f"URDF mesh not found: {filename} (relative to {urdf_dir})")
 
 
 def load_robot_spec(rc: RobotConfig) -> mujoco.MjSpec:

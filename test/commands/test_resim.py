@@ -109,10 +109,13 @@ def test_output_bag_holds_recorded_and_simulated_topics(resim_out, tiny_run):
     rec = _read(data / TEST_EPISODE)
     got = _read(bag_dir)
 
+    # the recorded /tf (the robot's links) and the simulated one (world -> soma_sim -> cameras) share the topic
+    sim_tf = [m for m in got["/tf"] if any(x.child_frame_id == "soma_sim" for x in _msg(m).transforms)]
+    recorded = dict(got, **{"/tf": [m for m in got["/tf"] if m not in sim_tf]})
     # every recorded topic, message for message, byte for byte, same bag times
     for topic, msgs in rec.items():
         assert topic in got, topic
-        assert [(ts, raw) for ts, raw, _ in got[topic]] == [(ts, raw) for ts, raw, _ in msgs], topic
+        assert [(ts, raw) for ts, raw, _ in recorded[topic]] == [(ts, raw) for ts, raw, _ in msgs], topic
     assert {"/joint_states", "/tf_static", "/world/object_points", "/cam_front/color/image_raw"} <= set(rec)
 
     ctx = EvalContext.from_run(run, data)
@@ -126,8 +129,9 @@ def test_output_bag_holds_recorded_and_simulated_topics(resim_out, tiny_run):
     expect = {f"/soma/{c}/{k}" for c in ep.camera_names for k in SIM_TOPIC_KINDS} | {"/soma/splats"}
     assert sim_topics == expect
     assert set(got) == set(rec) | expect | {"/tf"}
+    assert len(got["/tf"]) == len(sim_tf) + len(rec.get("/tf", []))
     for topic in sorted(expect | {"/tf"}):
-        msgs = got[topic]
+        msgs = sim_tf if topic == "/tf" else got[topic]
         assert len(msgs) == T, topic
         assert [ts for ts, _, _ in msgs] == frame_stamps, topic  # bag time = the recorded frame's stamp
         if topic != "/tf":
@@ -152,16 +156,17 @@ def test_output_bag_holds_recorded_and_simulated_topics(resim_out, tiny_run):
         obj = ep.object_mask[0, ci].numpy()
         assert drawn.sum() > 20 and obj.sum() > 20, cam
         assert (drawn & obj).sum() / drawn.sum() > 0.3, cam  # the camera pose and intrinsics are the recorded ones
-        assert np.all(sim_depth[drawn] > 0.05) and np.all(np.isfinite(sim_depth))
+        assert np.all(sim_depth[drawn] > 0.05)
+        assert not (sim_depth == 0).any() and np.isnan(sim_depth[~drawn]).any()  # REP 118: NaN = nothing drawn
         rec_depth = ep.depth[0, ci].numpy()
-        both = drawn & obj & (rec_depth > 0)
+        both = drawn & obj & (rec_depth > 0) & np.isfinite(sim_depth)
         assert np.median(np.abs(sim_depth[both] - rec_depth[both])) < 0.03, cam  # metres, like the recording
 
     # TF: world -> soma_sim (identity), soma_sim -> each camera at its recorded pose (the wrist camera moves)
     from soma_ros.data.bags import tf_to_matrix
 
     for t in (0, T - 1):
-        tf = {(x.header.frame_id, x.child_frame_id): x for x in _msg(got["/tf"][t]).transforms}
+        tf = {(x.header.frame_id, x.child_frame_id): x for x in _msg(sim_tf[t]).transforms}
         np.testing.assert_allclose(tf_to_matrix(tf[("world", "soma_sim")].transform), np.eye(4), atol=1e-12)
         for ci, cam in enumerate(ep.camera_names):
             x = tf[("soma_sim", f"soma_sim/{cam}_optical")]
@@ -178,6 +183,29 @@ def test_output_bag_holds_recorded_and_simulated_topics(resim_out, tiny_run):
     assert all(c.width == len(init) for c in clouds)
     last = cloud_to_splats(clouds[-1])
     assert torch.isfinite(last.means).all()
+
+
+def test_mcap_with_mcap_ros2_support_decodes_every_message_of_the_resim_bag(resim_out):
+    """An independent reader (``mcap`` + ``mcap-ros2-support``'s CDR decoder, as Foxglove reads
+    the file) decodes every message, recorded and simulated, with its schema."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    out, _, _ = resim_out
+    files = sorted((out / "resim_bag").glob("*.mcap"))
+    assert files
+    topics: dict[str, int] = {}
+    total = 0
+    for f in files:
+        with open(f, "rb") as fh:
+            reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+            total += reader.get_summary().statistics.message_count
+            for _, ch, _, msg in reader.iter_decoded_messages():
+                topics[ch.topic] = topics.get(ch.topic, 0) + 1
+                if ch.topic.endswith("/depth"):
+                    assert msg.encoding == "32FC1" and len(msg.data) == 4 * msg.width * msg.height
+    assert total > 0 and sum(topics.values()) == total
+    assert {"/soma/splats", "/tf", "/joint_states", "/soma/cam_front/depth"} <= set(topics)
 
 
 def test_metrics_equal_the_evaluation_harness(resim_out, tiny_run, tmp_path):
