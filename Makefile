@@ -79,6 +79,7 @@ msgs: $(STAMP_MSGS)
 
 $(STAMP_PKG): $(STAMP_MSGS) setup.py package.xml
 	$(PIP) install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
+	$(PY) -m soma_ros.core.raster_kernel --build
 	@touch $@
 
 install: $(STAMP_PKG)

@@ -22,7 +22,7 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(include=["soma_ros", "soma_ros.*"]),
-    package_data={PACKAGE: ["resources/robots/**/*"]},
+    package_data={PACKAGE: ["resources/robots/**/*", "core/kernels/*.cpp"]},
     include_package_data=True,
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),

@@ -58,6 +58,7 @@ from typing import Optional
 
 import torch
 
+from . import raster_kernel
 from .cameras import Cameras
 from .render_raster import build_plan, composite
 
@@ -98,6 +99,10 @@ class RenderConfig:
     tile_cull: bool = True
     # "auto": gsplat on CUDA when importable, else torch; "torch"; "gsplat"
     backend: str = "auto"
+    # compositor of the torch backend on CPU: "auto" the compiled kernels of
+    # raster_kernel when they load (else the reference, with one warning line),
+    # "torch" always the pure-torch reference, "compiled" the kernels or an error
+    raster: str = "auto"
 
     def __post_init__(self) -> None:
         if self.tile_size < 1:
@@ -116,6 +121,8 @@ class RenderConfig:
             raise ValueError("RenderConfig.max_chunk_elems must be >= 1")
         if self.backend not in ("auto", "torch", "gsplat"):
             raise ValueError(f"RenderConfig.backend must be auto|torch|gsplat, got {self.backend!r}")
+        if self.raster not in ("auto", "torch", "compiled"):
+            raise ValueError(f"RenderConfig.raster must be auto|torch|compiled, got {self.raster!r}")
 
 
 @dataclass
@@ -126,7 +133,7 @@ class RenderOutput:
     depth: torch.Tensor  # [C, H, W]
     alpha: torch.Tensor  # [C, H, W]
     premultiplied: torch.Tensor  # [C, H, W, 3]
-    backend: str = "torch"
+    backend: str = "torch"  # "torch" (reference), "compiled" (CPU kernels) or "gsplat"
     n_visible: int = 0  # visible (camera, splat) pairs
     n_isect: int = 0  # (tile, splat) intersections (torch backend)
 
@@ -281,34 +288,61 @@ def _finish(premult, dsum, alpha, bg, cfg, backend, n_vis, n_isect) -> RenderOut
                         backend=backend, n_visible=n_vis, n_isect=n_isect)
 
 
+def _use_kernels(means: torch.Tensor, cfg: RenderConfig) -> bool:
+    """Whether the compiled CPU kernels composite this render (see ``RenderConfig.raster``)."""
+    if cfg.raster == "torch" or means.device.type != "cpu" or means.dtype not in (torch.float32, torch.float64):
+        if cfg.raster == "compiled":
+            raise ValueError("render: raster 'compiled' needs float32/float64 CPU tensors")
+        return False
+    if raster_kernel.available():
+        return True
+    if cfg.raster == "compiled":
+        raise ImportError(f"render: raster 'compiled' requested but the kernels are unavailable "
+                          f"({raster_kernel.unavailable_reason()})")
+    return False
+
+
 def _render_torch(means, covs, colors, opacities, cameras, bg, cfg) -> RenderOutput:
     C = len(cameras)
-    proj = project_gaussians(means, covs, opacities, cameras, cfg)
+    kernels = _use_kernels(means, cfg)
+    needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (means, covs, opacities))
+    if kernels and not needs_grad:
+        proj = raster_kernel.project(means, covs, opacities, cameras, cfg)
+    else:
+        proj = project_gaussians(means, covs, opacities, cameras, cfg)
     V = proj.mean2d.shape[0]
-    plan = build_plan(
-        proj.mean2d.detach(),
-        proj.conic.detach(),
-        proj.cov2d.detach()[:, [0, 2]],
-        proj.pmax,
-        proj.depth.detach(),
-        proj.cam_idx,
-        C,
-        cameras.width,
-        cameras.height,
-        cfg.tile_size,
-        cfg.max_chunk_elems,
-        cfg.tile_cull,
-    )
     if colors.ndim == 3:
         col = colors[proj.cam_idx, proj.splat_idx]
     else:
         col = colors[proj.splat_idx]
     feat = torch.cat([col, proj.depth[:, None], torch.ones_like(proj.depth)[:, None]], dim=-1)
-    img = composite(proj.mean2d, proj.conic, proj.opacity, feat, proj.smin, plan,
-                    cfg.alpha_max, cfg.transmittance_min)  # [C, H, W, 5]
+    if kernels:
+        kplan = raster_kernel.bin_splats(proj.mean2d, proj.conic, proj.cov2d, proj.pmax, proj.depth,
+                                         proj.cam_idx, C, cameras.width, cameras.height, cfg.tile_size)
+        img = raster_kernel.composite(proj.mean2d, proj.conic, proj.opacity, feat.to(means.dtype), proj.smin,
+                                      kplan, cfg.alpha_max, cfg.transmittance_min)
+        name, n_isect = "compiled", kplan.n_isect
+    else:
+        plan = build_plan(
+            proj.mean2d.detach(),
+            proj.conic.detach(),
+            proj.cov2d.detach()[:, [0, 2]],
+            proj.pmax,
+            proj.depth.detach(),
+            proj.cam_idx,
+            C,
+            cameras.width,
+            cameras.height,
+            cfg.tile_size,
+            cfg.max_chunk_elems,
+            cfg.tile_cull,
+        )
+        img = composite(proj.mean2d, proj.conic, proj.opacity, feat, proj.smin, plan,
+                        cfg.alpha_max, cfg.transmittance_min)  # [C, H, W, 5]
+        name, n_isect = "torch", plan.n_isect
     if img.shape != (C, cameras.height, cameras.width, 5):
         raise RuntimeError(f"render: compositor returned {list(img.shape)}, expected [C, H, W, 5]")
-    return _finish(img[..., :3], img[..., 3], img[..., 4], bg, cfg, "torch", V, plan.n_isect)
+    return _finish(img[..., :3], img[..., 3], img[..., 4], bg, cfg, name, V, n_isect)
 
 
 def _render_gsplat(means, covs, colors, opacities, cameras, bg, cfg) -> RenderOutput:

@@ -107,8 +107,13 @@ def two_cameras(W, H, dtype=torch.float64):
 
 
 # ----------------------------------------------------------------- tests
+# both compositors: the pure-torch reference and the compiled CPU kernels
+RASTERS = pytest.mark.parametrize("raster", ["torch", "compiled"])
+
+
+@RASTERS
 @pytest.mark.parametrize("tile", [4, 8, 16])
-def test_matches_brute_force(tile):
+def test_matches_brute_force(tile, raster):
     means, scales, quats, colors, opac = random_scene(60, seed=1)
     # a few splats at/behind the near plane and outside the image, and opaque ones
     means[0] = torch.tensor([0.0, 0.0, 0.005], dtype=torch.float64)
@@ -116,7 +121,7 @@ def test_matches_brute_force(tile):
     opac[2:12] = 0.999  # hits the 0.99 clamp and the transmittance cut-off
     covs = covariance_from_scale_rot(scales, quats)
     cams = two_cameras(37, 29)
-    cfg = RenderConfig(tile_size=tile, max_chunk_elems=2000)  # many chunks
+    cfg = RenderConfig(tile_size=tile, max_chunk_elems=2000, raster=raster)  # many chunks
     bg = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
     out = render(means, covs, colors, opac, cams, background=bg, cfg=cfg)
     ref_rgb, ref_d, ref_a = brute_force_render(means, covs, colors, opac, cams, bg, cfg)
@@ -127,12 +132,13 @@ def test_matches_brute_force(tile):
     torch.testing.assert_close(out.depth, ref_d, atol=1e-8, rtol=0)
 
 
-def test_matches_brute_force_float32_per_camera_colors_and_no_cull():
+@RASTERS
+def test_matches_brute_force_float32_per_camera_colors_and_no_cull(raster):
     means, scales, quats, colors, opac = random_scene(80, seed=2)
     covs = covariance_from_scale_rot(scales, quats)
     cams = two_cameras(40, 24)
     cols = torch.stack([colors, colors.flip(1)])  # [C, N, 3]
-    cfg = RenderConfig(tile_size=8, tile_cull=False)
+    cfg = RenderConfig(tile_size=8, tile_cull=False, raster=raster)
     out = render(means.float(), covs.float(), cols.float(), opac.float(), cams.to(dtype=torch.float32), cfg=cfg)
     ref_rgb, ref_d, ref_a = brute_force_render(means, covs, cols, opac, cams, None, cfg)
     assert out.rgb.dtype == torch.float32
@@ -184,14 +190,15 @@ def test_single_gaussian_analytic():
     assert out.alpha[0, 16, 16 + int(math.ceil(r)) + 1].item() == 0.0
 
 
-def test_gradients_match_finite_differences():
+@RASTERS
+def test_gradients_match_finite_differences(raster):
     """torch.autograd.gradcheck (float64) through projection + tile compositing."""
     means, scales, quats, colors, opac = random_scene(7, seed=3, spread=0.2, scale_range=(0.05, 0.12))
     opac = opac.clamp(0.2, 0.9)
     W, H = 13, 11
     K = torch.tensor([[14.0, 0, 6.3], [0, 14.0, 5.4], [0, 0, 1]], dtype=torch.float64)
     cams = Cameras(K=K, world_to_cam=torch.eye(4, dtype=torch.float64), width=W, height=H)
-    cfg = RenderConfig(tile_size=4)
+    cfg = RenderConfig(tile_size=4, raster=raster)
     bg = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
 
     def fn(m, s, q, c, o):
@@ -203,7 +210,8 @@ def test_gradients_match_finite_differences():
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
-def test_gradients_opaque_scene_with_clamp_and_cutoff():
+@RASTERS
+def test_gradients_opaque_scene_with_clamp_and_cutoff(raster):
     """gradcheck where alpha hits the 0.99 clamp and the transmittance cut-off fires."""
     means, scales, quats, colors, opac = random_scene(9, seed=8, spread=0.06, scale_range=(0.15, 0.3))
     opac = 0.996 + 0.0035 * torch.rand(9, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
@@ -213,7 +221,7 @@ def test_gradients_opaque_scene_with_clamp_and_cutoff():
     z0 = 0.9
     means[0] = torch.tensor([(6.6 - 6.2) * z0 / 12.0, (4.5 - 4.9) * z0 / 12.0, z0], dtype=torch.float64)
     cams = Cameras(K=K, world_to_cam=torch.eye(4, dtype=torch.float64), width=W, height=H)
-    cfg = RenderConfig(tile_size=4)
+    cfg = RenderConfig(tile_size=4, raster=raster)
     covs = covariance_from_scale_rot(scales, quats)
     # the scene exercises both rules: reference with them disabled differs
     ref = brute_force_render(means, covs, colors, opac, cams, None, cfg)
@@ -229,13 +237,14 @@ def test_gradients_opaque_scene_with_clamp_and_cutoff():
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-7, atol=1e-6, rtol=1e-4)
 
 
-def test_gradients_wrt_covariance_entries():
+@RASTERS
+def test_gradients_wrt_covariance_entries(raster):
     means, scales, quats, colors, opac = random_scene(5, seed=4, spread=0.15, scale_range=(0.05, 0.1))
     covs = covariance_from_scale_rot(scales, quats)
     W, H = 10, 9
     K = torch.tensor([[11.0, 0, 5.1], [0, 11.0, 4.4], [0, 0, 1]], dtype=torch.float64)
     cams = Cameras(K=K, world_to_cam=torch.eye(4, dtype=torch.float64), width=W, height=H)
-    cfg = RenderConfig(tile_size=4)
+    cfg = RenderConfig(tile_size=4, raster=raster)
     weights = torch.randn(1, H, W, 5, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
 
     def fn(cv):
@@ -246,14 +255,15 @@ def test_gradients_wrt_covariance_entries():
     assert torch.autograd.gradcheck(fn, (covs.clone().requires_grad_(True),), eps=1e-7, atol=1e-6, rtol=1e-4)
 
 
-def test_backward_float32_matches_float64():
+@RASTERS
+def test_backward_float32_matches_float64(raster):
     means, scales, quats, colors, opac = random_scene(200, seed=5, scale_range=(0.005, 0.03))
     cams = two_cameras(48, 40)
     grads = {}
     for dt in (torch.float64, torch.float32):
         ins = [t.to(dt).clone().requires_grad_(True) for t in (means, scales, colors, opac)]
         covs = covariance_from_scale_rot(ins[1], quats.to(dt))
-        out = render(ins[0], covs, ins[2], ins[3], cams.to(dtype=dt), cfg=RenderConfig(max_chunk_elems=4096))
+        out = render(ins[0], covs, ins[2], ins[3], cams.to(dtype=dt), cfg=RenderConfig(max_chunk_elems=4096, raster=raster))
         loss = (out.rgb ** 2).sum() + out.depth.sum() + out.alpha.sum()
         loss.backward()
         grads[dt] = [t.grad.double() for t in ins]
@@ -328,6 +338,9 @@ def test_bench_render_smoke():
     rows = bench_render(n_splats_list=(300,), resolutions=((64, 48),), device="cpu", repeats=1, warmup=0)
     assert len(rows) == 1
     r = rows[0]
-    assert r["n_splats"] == 300 and (r["width"], r["height"]) == (64, 48) and r["backend"] == "torch"
+    from soma_ros.core import raster_kernel
+
+    expect = "compiled" if raster_kernel.available() else "torch"
+    assert r["n_splats"] == 300 and (r["width"], r["height"]) == (64, 48) and r["backend"] == expect
     assert r["fwd_ms"] > 0 and r["fwdbwd_ms"] > 0 and r["peak_rss_mb"] > 0 and 0.1 < r["coverage"] < 1
     assert "64x48" in format_table(rows) and "cores" in machine_description()
