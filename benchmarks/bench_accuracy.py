@@ -7,7 +7,7 @@
 
 For each object: generate (or reuse) a reference-world dataset, train every
 learned variant with ``soma train`` (full, state_only, img_only, no_mrt), fit
-the spring-mass baseline, evaluate all of them and ``static`` on the training
+the spring-mass baseline, evaluate all of them, ``prior_only`` (full with the network off) and ``static`` on the training
 (resimulation) and held-out (generalization) episodes, and write OUT/table.md,
 OUT/table.json ({object: {variant: {split: {metric: value}}}}) and
 OUT/bench.json. Presets: config/eval/<preset>.yaml (tiny: 2-core CPU, under
@@ -31,7 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--objects", default=None, metavar="LIST",
                    help="comma-separated objects (default: the preset's: rope,cloth,doll)")
     p.add_argument("--variants", default=None, metavar="LIST",
-                   help="comma-separated variants (default: full,static,state_only,spring_mass,img_only,no_mrt)")
+                   help="comma-separated variants (default: full,prior_only,static,state_only,spring_mass,img_only,no_mrt)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (data/, runs/, eval/, table.md, table.json)")
     p.add_argument("--episodes", type=int, default=None, metavar="N", help="episodes per object (default: the preset's)")
     p.add_argument("--seed", type=int, default=None, metavar="S", help="reference-world seed (default: the preset's)")

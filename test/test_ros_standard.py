@@ -161,7 +161,7 @@ def test_world_bag_decodes_with_mcap_and_every_frame_reaches_world(world_bag):
 
 
 def _tf_matrix(tr) -> np.ndarray:
-    from trainer.bags import tf_to_matrix
+    from soma_ros.data.bags import tf_to_matrix
 
     return tf_to_matrix(tr)
 
@@ -169,7 +169,7 @@ def _tf_matrix(tr) -> np.ndarray:
 def test_a_world_bag_still_trains_the_same_cameras(world_bag):
     """The bag reader places the wrist camera on its link as before (the robot's links on /tf
     change nothing in /tf_static): mount link panda_hand."""
-    from trainer.bags import camera_mount, read_episode
+    from soma_ros.data.bags import camera_mount, read_episode
 
     ep = read_episode(world_bag)
     frame, _ = camera_mount(ep, "cam_wrist")
@@ -219,7 +219,7 @@ def test_node_publishes_one_tf_tree_a_latched_robot_description_and_nan_depth(ro
         assert set(live.robot.link_names) <= set(parents) | {live.robot.base_link}
 
         # the TF tree places the wrist camera where the node rendered it from
-        from trainer.bags import tf_to_matrix
+        from soma_ros.data.bags import tf_to_matrix
 
         edges = {t.child_frame_id: t for m in [probe.last("tf_static")] + tf_msgs[-1:] for t in m.transforms}
         T, f = np.eye(4), "soma_sim/cam_wrist_optical"

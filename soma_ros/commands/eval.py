@@ -6,6 +6,8 @@
 ``train_config.yaml``), a ``checkpoint.pt`` inside one, a fitted spring-mass
 model (``spring_mass.pt`` or its folder, as ``soma bench accuracy`` writes
 them), or ``static`` (splats that never move; needs ``--run`` for the scene).
+``--prior-only``: the checkpoint's simulator with the network's contribution
+switched off (the ``prior_only`` baseline: its physical terms alone).
 ``--run`` names the run whose scene and data/alignment settings define the
 initial states (default: the checkpoint's folder). Writes DIR/metrics.json,
 DIR/table.md, DIR/sheets/*.png (and DIR/videos/*.mp4); see
@@ -36,6 +38,8 @@ def register(subparsers) -> None:
     p.add_argument("--run", default=None, metavar="RUN",
                    help="run folder giving the scene and the data settings (default: the checkpoint's folder)")
     p.add_argument("--scene", default=None, metavar="DIR", help="scene bundle to start from (default: RUN/scene)")
+    p.add_argument("--prior-only", action="store_true",
+                   help="switch the simulator's network off: the prior_only baseline (its physical terms alone)")
     p.add_argument("--name", default=None, help="variant name in the report (default: from the checkpoint)")
     p.add_argument("--max-episodes", type=int, default=None, metavar="N", help="score only the first N episodes")
     p.add_argument("--frame-stride", type=int, default=1, metavar="K", help="score every K-th frame (default: 1)")
@@ -72,8 +76,11 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--frame-stride must be >= 1")
     run_dir = _run_dir(args.checkpoint, args.run)
     t0 = time.time()
-    model = StaticModel() if args.checkpoint == "static" else load_model(args.checkpoint)
-    name = args.name or ("static" if args.checkpoint == "static" else Path(args.checkpoint).resolve().name.replace(".pt", ""))
+    if args.prior_only and args.checkpoint == "static":
+        raise ValueError("--prior-only needs a simulator checkpoint, not 'static'")
+    model = StaticModel() if args.checkpoint == "static" else load_model(args.checkpoint, network=not args.prior_only)
+    name = args.name or ("static" if args.checkpoint == "static" else "prior_only" if args.prior_only
+                         else Path(args.checkpoint).resolve().name.replace(".pt", ""))
     data = args.data[0] if len(args.data) == 1 else args.data
     ctx = EvalContext.from_run(run_dir, data, args.scene, strict=True if args.strict else None)
     for line in ctx.skipped:

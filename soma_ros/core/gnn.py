@@ -14,7 +14,9 @@ with ``splat_head``, decodes per-splat updates). Per level:
   per node: 3 for the acceleration of the node relative to its anchor, and the
   11 deformation numbers of the SoMA head (two quaternions U, V and three
   log-scales; see :mod:`.simulator`). The last decoder layer has no bias and
-  starts scaled by ``out_init_scale``.
+  starts scaled by ``out_init_scale`` (0: the output starts at exactly zero, so the
+  untrained model is its physical terms alone, bit for bit; the first gradient steps
+  move only that layer, the earlier ones follow once it is non-zero).
 
 Where the time goes, and what is done about it (the fine cluster level has
 ~1,400 nodes and ~23,000 edges at 13k splats; per-edge passes over [E, W]

@@ -130,7 +130,7 @@ from torch import nn
 from .config import EffectSpec, ModelConfig
 from .effects import Effect, EffectContext, EffectSet
 from .geometry import quat_conjugate, quat_multiply, quat_normalize, quat_to_rotmat, rotmat_to_quat
-from .gnn import HierarchicalGNN, MessageGraph, Normalizer, node_feature_size
+from .gnn import HEAD_OUTPUTS, HierarchicalGNN, MessageGraph, Normalizer, node_feature_size
 from .graph import EDGE_FEATURES, LevelGraphs, build_static_graphs, dynamic_edges, edge_features, safe_norm
 from .hierarchy import Hierarchy, build_hierarchy
 from .splats import Splats
@@ -415,6 +415,8 @@ class Simulator(nn.Module):
         self.hierarchy: Optional[Hierarchy] = None
         self.graphs: Optional[LevelGraphs] = None
         self.splat_attrs: Optional[nn.Parameter] = None
+        #: False: the network's contribution is switched off (:meth:`set_network`)
+        self.network_enabled = True
 
     # ------------------------------------------------------------------ binding
     @property
@@ -681,6 +683,16 @@ class Simulator(nn.Module):
         return [s.instance_key for s in self.effects.specs
                 if not self.effects[s.instance_key].in_reference and not s.fitted_after_training]
 
+    def set_network(self, on: bool) -> "Simulator":
+        """Switch the learned network's contribution on or off. Off, every level's network output is
+        exactly zero (the network is not run), so a step is the physical terms alone: the reference
+        effects' equilibrium, the direct effects (the robot coupling, the physics prior) and the bounds.
+        A model whose decoder's last layer is zero (``gnn.out_init_scale: 0``, the untrained network
+        of the ``tiny`` training config) rolls out bit for bit the same with the network on or off.
+        Not part of the weights (``state_dict``). Returns self."""
+        self.network_enabled = bool(on)
+        return self
+
     def set_passive_friction(self, mu: Optional[float], exempt: Optional[Sequence[str]] = None,
                              exempt_closed: Optional[bool] = None) -> "Simulator":
         """Switch the passive-object rule (``DynamicsConfig.passive_friction``): None leaves the
@@ -831,19 +843,25 @@ class Simulator(nn.Module):
                 continue
             a_anchor = (c_new - 2.0 * state.carry[l] + state.carry_prev[l]) / (dt * dt)
             v_rel = (state.resid[l] - state.resid_prev[l]) / dt
-            a_ext = f_lv[l] / ep.masses[l].clamp_min(1e-12)[:, None]
-            nodes = self._node_features(l, a_anchor, a_ext, v_rel, ep.attrs[l])
-            parent_lat = None
-            if l < L and cfg.gnn.top_down_latent:
-                parent_lat = latents[l + 1].index_select(0, h.parents[l])
-            if l >= 1:
-                static, dyn, built = self._edges(state, l)
-                dyn_edges[l], dyn_step[l] = dyn, built
-                graph, efeat = self._level_graph(l, state, static, dyn)
-                out, lat = self.gnn.forward_level(nodes, graph, efeat, parent_lat)
-                latents[l] = lat
+            if not self.network_enabled:  # the physical terms alone: the network's output is exactly zero
+                if l >= 1:
+                    _, dyn, built = self._edges(state, l)
+                    dyn_edges[l], dyn_step[l] = dyn, built
+                out = v_rel.new_zeros((h.sizes[l], HEAD_OUTPUTS))
             else:
-                out = self.gnn.forward_splats(nodes, latents[1].index_select(0, h.parents[0]))
+                a_ext = f_lv[l] / ep.masses[l].clamp_min(1e-12)[:, None]
+                nodes = self._node_features(l, a_anchor, a_ext, v_rel, ep.attrs[l])
+                parent_lat = None
+                if l < L and cfg.gnn.top_down_latent:
+                    parent_lat = latents[l + 1].index_select(0, h.parents[l])
+                if l >= 1:
+                    static, dyn, built = self._edges(state, l)
+                    dyn_edges[l], dyn_step[l] = dyn, built
+                    graph, efeat = self._level_graph(l, state, static, dyn)
+                    out, lat = self.gnn.forward_level(nodes, graph, efeat, parent_lat)
+                    latents[l] = lat
+                else:
+                    out = self.gnn.forward_splats(nodes, latents[1].index_select(0, h.parents[0]))
             raw[l] = out
             delta = torch.zeros_like(out) if reference is None else out - reference[l]
             # translation: residual velocity and offset, bounded

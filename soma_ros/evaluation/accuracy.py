@@ -77,6 +77,8 @@ __all__ = [
     "run_bench",
     "table_markdown",
     "comparison",
+    "task_means",
+    "prior_comparison",
 ]
 
 OBJECTS = ("rope", "cloth", "doll")
@@ -221,7 +223,7 @@ def variant_train_config(bench: BenchConfig, obj: str, variant: str) -> TrainCon
 def _check_no_test_selection(cfg: TrainConfig, what: str) -> None:
     """The benchmark scores the manifest's ``test`` split: no run may train or select its checkpoint on it."""
     d = cfg.data
-    if d.train_split == "test" or (d.val_split == "test" and cfg.run.keep == "best") or \
+    if d.train_split == "test" or (d.val_split == "test" and cfg.run.keep != "last") or \
             (d.val_split is not None and d.val_split == d.train_split):
         raise ConfigError(f"{what}: data.train_split={d.train_split!r}, data.val_split={d.val_split!r}, "
                           f"run.keep={cfg.run.keep!r}: the held-out test episodes would train or select the model; "
@@ -349,6 +351,79 @@ def comparison(table: dict, obj: str, split: str = "test") -> list[dict]:
     return rows
 
 
+#: metrics of the full vs prior_only comparison (lower is better for both)
+PRIOR_METRICS = ("rmse", "chamfer")
+
+
+def task_means(episodes: dict[str, dict], metrics: Sequence[str] = METRICS) -> dict[str, dict]:
+    """{task: {metric: mean over that task's episodes (NaN-safe), "episodes": count}} from an
+    evaluation's per-episode results (each with its ``task``; None counts as ``"-"``)."""
+    out: dict[str, dict] = {}
+    for task in dict.fromkeys((e.get("task") or "-") for e in episodes.values()):
+        eps = [e for e in episodes.values() if (e.get("task") or "-") == task]
+        row: dict = {}
+        for m in metrics:
+            vals = [float(e[m]) for e in eps if e.get(m) is not None and math.isfinite(float(e[m]))]
+            row[m] = sum(vals) / len(vals) if vals else math.nan
+        row["episodes"] = len(eps)
+        out[task] = row
+    return out
+
+
+def prior_comparison(by_task: dict, split: str = "test", tolerance: float = 0.05) -> dict:
+    """``full`` against ``prior_only`` on a split, per task and averaged over the tasks, on depth
+    RMSE and Chamfer: {"tasks": {task: {metric: {"full", "prior_only", "relative"}}},
+    "mean": {metric: {...}}, "full_better_on_mean": {metric: bool}, "worst_task_relative":
+    {metric: largest (full - prior) / prior over the tasks}, "within_tolerance": every task's
+    relative <= ``tolerance``} (empty without both variants)."""
+    f, p = by_task.get("full", {}).get(split), by_task.get("prior_only", {}).get(split)
+    if not f or not p:
+        return {}
+    tasks: dict = {}
+    for task in f:
+        if task not in p:
+            continue
+        tasks[task] = {}
+        for m in PRIOR_METRICS:
+            a, b = f[task].get(m, math.nan), p[task].get(m, math.nan)
+            tasks[task][m] = {"full": a, "prior_only": b, "relative": (a - b) / abs(b) if b else math.nan}
+    mean, better, worst = {}, {}, {}
+    for m in PRIOR_METRICS:
+        a = [tasks[t][m]["full"] for t in tasks if math.isfinite(tasks[t][m]["full"])]
+        b = [tasks[t][m]["prior_only"] for t in tasks if math.isfinite(tasks[t][m]["prior_only"])]
+        ma, mb = (sum(a) / len(a) if a else math.nan), (sum(b) / len(b) if b else math.nan)
+        mean[m] = {"full": ma, "prior_only": mb, "relative": (ma - mb) / abs(mb) if mb else math.nan}
+        better[m] = bool(ma < mb)
+        rel = [tasks[t][m]["relative"] for t in tasks if math.isfinite(tasks[t][m]["relative"])]
+        worst[m] = max(rel) if rel else math.nan
+    return {"split": split, "tasks": tasks, "mean": mean, "full_better_on_mean": better,
+            "worst_task_relative": worst, "tolerance": tolerance,
+            "within_tolerance": all(math.isfinite(w) and w <= tolerance for w in worst.values())}
+
+
+def prior_markdown(pc: dict) -> list[str]:
+    """Lines of the full vs prior_only table (:func:`prior_comparison`)."""
+    if not pc:
+        return []
+    lines = ["Held-out: full vs prior_only (full's kept weights, network off) per task", "",
+             "| task | full RMSE | prior_only RMSE | rel. | full Chamfer | prior_only Chamfer | rel. |",
+             "|---|---|---|---|---|---|---|"]
+    for task, row in list(pc["tasks"].items()) + [("mean over tasks", pc["mean"])]:
+        cells = []
+        for m in PRIOR_METRICS:
+            c = row[m]
+            cells += [format_metric(m, c["full"]), format_metric(m, c["prior_only"]), f"{100 * c['relative']:+.1f} %"]
+        lines.append(f"| {task} | " + " | ".join(cells) + " |")
+    lines.append("")
+    better = ", ".join(f"{m} {'yes' if pc['full_better_on_mean'][m] else 'NO'}" for m in PRIOR_METRICS)
+    worst = ", ".join(f"{m} {100 * pc['worst_task_relative'][m]:+.1f} %" for m in PRIOR_METRICS)
+    verdict = "met" if pc["within_tolerance"] else "NOT met"
+    lines.append(f"- full better on the mean over tasks: {better}; worst task {worst} "
+                 f"(target: <= {100 * pc['tolerance']:+.0f} %: {verdict})")
+    lines.append("")
+    return lines
+
+
 def table_markdown(table: dict, bench: BenchConfig, meta: dict) -> str:
     """The Table-1-shaped markdown: per object, rows = variants, columns = split x metric."""
     lines = [f"# Accuracy benchmark ({bench.name} preset)", ""]
@@ -380,7 +455,7 @@ def table_markdown(table: dict, bench: BenchConfig, meta: dict) -> str:
             st = steps.get(v, {})
             if st.get("val_loss") is not None and st.get("val_loss_untrained") is not None:
                 txt = f"{v} {st['val_loss_untrained']:.4f} -> {st['val_loss']:.4f} ({st.get('iterations')} it)"
-                if st.get("kept") == "best" and st.get("best_iteration") is not None:
+                if st.get("kept") in ("best", "best_points", "best_score") and st.get("best_iteration") is not None:
                     txt += f", kept it {st['best_iteration']} ({st['best_val_loss']:.4f})"
                 trained.append(txt)
                 val_eps = val_eps or st.get("val_episodes")
@@ -413,6 +488,7 @@ def table_markdown(table: dict, bench: BenchConfig, meta: dict) -> str:
                                  f"{v} {format_metric('rmse', un[v].get('test', {}).get('rmse_union'))}"
                                  for v in ("full", "static", "state_only") if v in un))
             lines.append("")
+        lines += prior_markdown(om.get("prior_test", {}))
     lines.append("Metrics: " + "; ".join(f"{k}: {v}" for k, v in meta.get("protocol", {}).items()))
     lines.append("")
     return "\n".join(lines)
@@ -498,6 +574,8 @@ def run_bench(bench: BenchConfig, out: Path, objects: Optional[Sequence[str]] = 
         for v in bench.variants:
             if v == "static":
                 models[v] = StaticModel()
+            elif v == "prior_only":  # full's kept weights, the network switched off
+                models[v] = load_model(full_run / "checkpoint.pt", network=False)
             elif v == "spring_mass":
                 models[v] = load_model(runs / "spring_mass" / SPRING_MASS_FILE)
             else:
@@ -506,12 +584,14 @@ def run_bench(bench: BenchConfig, out: Path, objects: Optional[Sequence[str]] = 
         table[obj] = {v: {} for v in bench.variants}
         union = {v: {} for v in bench.variants}  # depth over measured | rendered object (EXTRA_METRICS)
         n_eps = {}
+        by_task: dict = {}  # {variant: {split: {task: {metric: mean over the task's episodes}}}}
         for split in SPLITS:
             log(f"[{obj}] evaluating {len(models)} variants on the {split} episodes")
             res = evaluate_models(models, ctx, split, {v: out / "eval" / obj / split / v for v in models}, ecfg,
                                   log=lambda s: log(f"[{obj}] {s}"))
             for v, r in res.items():
                 table[obj][v][split] = {m: r["mean"].get(m) for m in METRICS}
+                by_task.setdefault(v, {})[split] = task_means(r["episodes"])
                 union[v][split] = {m: r["mean"].get(m) for m in EXTRA_METRICS}
                 n_eps[split] = r["mean"]["episodes"]
         steps["eval"] = {"seconds": round(time.time() - t_eval, 1)}
@@ -519,6 +599,7 @@ def run_bench(bench: BenchConfig, out: Path, objects: Optional[Sequence[str]] = 
                                 "finished": time.strftime("%Y-%m-%d %H:%M:%S"),
                                 "train_configs": {v: c.to_dict() for (o, v), c in train_cfgs.items() if o == obj},
                                 "data": str(data), "comparison_test": comparison(table, obj),
+                                "per_task": by_task, "prior_test": prior_comparison(by_task),
                                 "depth_union": union}
         log(f"[{obj}] done in {(time.time() - t_obj) / 60:.1f} min")
         meta["wall_seconds"] = round(time.time() - t_start, 1)

@@ -10,6 +10,10 @@ variant         what it is (how it is trained: :mod:`soma_ros.evaluation.accurac
 ==============  ======================================================================
 full            the SoMA simulator, trained with ``soma train`` (masked image loss +
                 momentum regulariser, two-stage multi-resolution schedule)
+prior_only      ``full``'s kept checkpoint with the network's contribution switched off
+                (:meth:`~soma_ros.core.simulator.Simulator.set_network`): its physical terms
+                (robot coupling, support, physics prior; as trained) alone. Not trained
+                itself: what ``full`` beats it by is what the learned network adds
 static          the splats never move (no training): the floor every model must beat
 state_only      GausSim-style: the same simulator without the ``robot`` effect, so it
                 predicts from past states only; since the initial state is the static
@@ -64,7 +68,7 @@ __all__ = [
 ]
 
 #: the variants of the accuracy table, in table order
-VARIANTS: tuple[str, ...] = ("full", "static", "state_only", "spring_mass", "img_only", "no_mrt")
+VARIANTS: tuple[str, ...] = ("full", "prior_only", "static", "state_only", "spring_mass", "img_only", "no_mrt")
 SPRING_MASS_FILE = "spring_mass.pt"
 SPRING_MASS_FORMAT = "soma_ros.spring_mass/1"
 
@@ -131,7 +135,7 @@ class SimulatorModel(RolloutModel):
     def describe(self) -> dict:
         extra = getattr(self.sim, "checkpoint_extra", {}) or {}
         return {"kind": self.kind, "effects": [e.instance_key for e in self.sim.config.effects],
-                "use_actions": self.use_actions, "iteration": extra.get("iteration"),
+                "network": bool(self.sim.network_enabled), "use_actions": self.use_actions, "iteration": extra.get("iteration"),
                 "complete": extra.get("complete"), "train_config": extra.get("train_config")}
 
 
@@ -296,9 +300,14 @@ def _plain(x):
     return x
 
 
-def load_model(path: str | Path) -> RolloutModel:
+def load_model(path: str | Path, network: bool = True) -> RolloutModel:
     """A simulator checkpoint (``checkpoint.pt``), a spring-mass file (``spring_mass.pt``), or a run
-    folder holding one of them -> :class:`RolloutModel`."""
+    folder holding one of them -> :class:`RolloutModel`.
+
+    ``network=False``: the ``prior_only`` baseline -- the same simulator with the network's
+    contribution switched off (:meth:`~soma_ros.core.simulator.Simulator.set_network`): its physical
+    terms (as trained) alone, so that a table shows what the learned network adds (a ValueError
+    for a spring-mass file, which has no network)."""
     p = Path(path)
     if p.is_dir():
         for name in ("checkpoint.pt", SPRING_MASS_FILE):
@@ -315,6 +324,9 @@ def load_model(path: str | Path) -> RolloutModel:
         raise ValueError(f"{p}: not a readable checkpoint ({type(exc).__name__}: {exc})") from None
     fmt = payload.get("format") if isinstance(payload, dict) else None
     if fmt == SPRING_MASS_FORMAT:
+        if not network:
+            raise ValueError(f"{p}: a spring-mass model has no network to switch off (prior_only needs a simulator "
+                             "checkpoint)")
         return SpringMassModel(SpringMass.from_payload(payload), payload.get("extra", {}))
     read_checkpoint(p)  # validates the simulator format with a clear error
-    return SimulatorModel(load_checkpoint(p))
+    return SimulatorModel(load_checkpoint(p).set_network(network))

@@ -47,6 +47,7 @@ __all__ = [
     "Stage1Config",
     "Stage2Config",
     "ScheduleConfig",
+    "ParamGroupConfig",
     "OptimConfig",
     "RunConfig",
     "TrainConfig",
@@ -80,7 +81,12 @@ class DataConfig:
     ``train_split`` / ``val_split``: manifest splits; ``val_split: null`` holds out
     the last ``val_holdout`` training episodes instead (never stepped on; the validation
     loss picks the kept checkpoint, ``run.keep``, so it must not be the test split when the
-    test split is what the model is scored on). ``tasks``: keep only
+    test split is what the model is scored on). ``val_stratify`` (default): validation sees
+    every task of the training split -- ``val_holdout`` is then the number held out *per task*
+    (each task's last episodes; a task with a single training episode keeps it for training),
+    and the validation list (of either kind) is ordered round-robin over the tasks, so that
+    ``run.val_episodes`` keeps them balanced; off: the last ``val_holdout`` training episodes,
+    whatever their task. ``tasks``: keep only
     episodes of these tasks (None = all). ``max_*_episodes`` cap the lists.
     ``require_masks``: a bag without object-mask topics is an error (else ``masks`` says
     where masks come from, derived from geometry by default: :mod:`soma_ros.data.masks`).
@@ -102,6 +108,7 @@ class DataConfig:
     train_split: str = "train"
     val_split: Optional[str] = "test"
     val_holdout: int = 1
+    val_stratify: bool = True
     tasks: Optional[list[str]] = None
     max_train_episodes: Optional[int] = None
     max_val_episodes: Optional[int] = None
@@ -287,11 +294,37 @@ class ScheduleConfig:
 
 
 @dataclass
+class ParamGroupConfig:
+    """One optimiser parameter group: ``lr`` (None = ``optim.lr``) reached after a linear warm-up
+    of ``warmup_iters`` iterations from ``lr / warmup_iters`` (0 = none), then the run's cosine
+    decay (``optim.lr_final_factor``), the same for every group."""
+
+    lr: Optional[float] = None
+    warmup_iters: int = 0
+
+    def validate(self, where: str) -> None:
+        if self.lr is not None and not (self.lr > 0 and math.isfinite(self.lr)):
+            raise ConfigError(f"{where}.lr: must be > 0 (or null: optim.lr), got {self.lr}")
+        if isinstance(self.warmup_iters, bool) or not isinstance(self.warmup_iters, int) or self.warmup_iters < 0:
+            raise ConfigError(f"{where}.warmup_iters: an integer >= 0, got {self.warmup_iters!r}")
+
+
+@dataclass
 class OptimConfig:
     """Adam (paper: lr 4e-4, gradient clipping 1.0). ``lr_final_factor``: cosine decay of
-    the learning rate to lr * factor over the run (1 = constant)."""
+    the learning rate to lr * factor over the run (1 = constant).
+
+    Two parameter groups, each with its own learning rate and warm-up (:class:`ParamGroupConfig`):
+    ``network`` = the graph network and the learned per-splat attributes it reads; ``physics`` =
+    the effects' parameters (the robot coupling, the support, the physics prior, wind). Adam
+    normalises every weight's step, so a network whose gradients are tiny next to the physical
+    terms' still moves at the full learning rate: its own, lower one with a warm-up keeps the
+    first steps from undoing what the physical terms give. One clip of the total gradient norm
+    (``grad_clip``) over both groups."""
 
     lr: float = 4e-4
+    network: ParamGroupConfig = field(default_factory=ParamGroupConfig)
+    physics: ParamGroupConfig = field(default_factory=ParamGroupConfig)
     betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
     weight_decay: float = 0.0
     grad_clip: float = 1.0
@@ -312,10 +345,19 @@ class OptimConfig:
             raise ConfigError(f"{where}.max_rollbacks: an integer >= 0, got {self.max_rollbacks!r}")
         if not 0 < self.rollback_lr_factor < 1:
             raise ConfigError(f"{where}.rollback_lr_factor: must lie in (0, 1), got {self.rollback_lr_factor}")
+        self.network.validate(f"{where}.network")
+        self.physics.validate(f"{where}.physics")
+
+    def group_lr(self, group: str) -> float:
+        """The peak learning rate of parameter group ``group`` (``network`` or ``physics``)."""
+        g = getattr(self, group)
+        return self.lr if g.lr is None else g.lr
 
 
 #: run.keep: the kept weights' criterion (validation), or the latest weights
-KEEP = ("best", "best_points", "last")
+KEEP = ("best", "best_points", "best_score", "last")
+#: run.score_terms: validation figures the selection score (run.keep: best_score) can combine
+SCORE_TERMS = ("val_loss", "img", "depth", "points")
 
 
 @dataclass
@@ -328,7 +370,13 @@ class RunConfig:
     lowest validation loss so far (the untrained model's included), ``best_points`` = those
     with the lowest validation point distance (observed object points, back-projected from the
     recorded depth, to the nearest splat: the geometry, whatever the loss weights; the image
-    loss alone can prefer an object that no longer follows the gripper), ``last`` = the latest.
+    loss alone can prefer an object that no longer follows the gripper), ``best_score`` = those
+    with the lowest selection score: for every task of the validation episodes, each of
+    ``score_terms`` (``img``: the image loss L_img; ``depth``: mean |depth error| (m) on the
+    evaluation's scored region, both maps completed with the table plane; ``points``: the point
+    distance; ``val_loss``) divided by the untrained model's value on that task, averaged over the
+    terms, then over the tasks -- so the untrained model scores exactly 1, every task weighs the
+    same and an image gain cannot hide a geometric loss; ``last`` = the latest.
     The latest weights are always in ``checkpoint_last.pt`` and ``train_state.pt`` (resume).
     Selecting on validation is model selection: the validation episodes must not be the
     held-out test episodes (see ``data.val_split``)."""
@@ -338,6 +386,7 @@ class RunConfig:
     val_episodes: int = 4
     val_frame_stride: int = 2
     keep: str = "best"
+    score_terms: list[str] = field(default_factory=lambda: ["img", "depth", "points"])
     progress: bool = True
 
     def validate(self, where: str = "run") -> None:
@@ -345,6 +394,10 @@ class RunConfig:
             raise ConfigError(f"{where}: checkpoint_every, val_every_epochs, val_episodes, val_frame_stride must be >= 1")
         if self.keep not in KEEP:
             raise ConfigError(f"{where}.keep: one of {', '.join(KEEP)}; got {self.keep!r}")
+        bad = [t for t in self.score_terms if t not in SCORE_TERMS]
+        if bad or not self.score_terms or len(set(self.score_terms)) != len(self.score_terms):
+            raise ConfigError(f"{where}.score_terms: distinct names among {', '.join(SCORE_TERMS)}; "
+                              f"got {self.score_terms!r}")
 
 
 IDENTIFY_COEFFICIENTS = ("stretch", "bend", "grip", "tilt", "damping", "friction")

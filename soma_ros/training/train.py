@@ -76,6 +76,11 @@ __all__ = [
     "EpisodeStore",
     "RolloutLoss",
     "stage_at",
+    "lr_at",
+    "param_groups",
+    "make_optimizer",
+    "split_validation",
+    "selection_score",
     "plan_rollout",
     "contact_frame",
     "rest_reach",
@@ -239,6 +244,58 @@ def rest_reach(sim: Simulator, margin: float = 0.01) -> Optional[float]:
     return max(sim.effects[k].robot_reach() for k in robot_keys) + margin
 
 
+def _by_task(refs: Sequence[EpisodeRef]) -> "OrderedDict[str, list[EpisodeRef]]":
+    out: "OrderedDict[str, list[EpisodeRef]]" = OrderedDict()
+    for r in refs:
+        out.setdefault(r.task or "", []).append(r)
+    return out
+
+
+def _round_robin(refs: Sequence[EpisodeRef]) -> list[EpisodeRef]:
+    """``refs`` reordered one task at a time (first of every task, then second, ...), so that any
+    prefix of the list is as balanced over the tasks as its length allows."""
+    groups = list(_by_task(refs).values())
+    return [g[i] for i in range(max((len(g) for g in groups), default=0)) for g in groups if i < len(g)]
+
+
+def split_validation(train: Sequence[EpisodeRef], val: Optional[Sequence[EpisodeRef]], dc) -> tuple[list, list]:
+    """(training episodes, validation episodes) from the training split ``train`` and, when the config
+    names one, the validation split ``val`` (None: held out of ``train``, :class:`~soma_ros.training.config.DataConfig`).
+
+    Stratified (``data.val_stratify``): the last ``val_holdout`` episodes of every task are held out,
+    as long as the task keeps at least one training episode; the validation list is ordered
+    round-robin over the tasks. Otherwise the last ``val_holdout`` episodes, at least one left to train."""
+    train = list(train)
+    if val is not None:
+        return train, _round_robin(val) if dc.val_stratify else list(val)
+    if not dc.val_stratify:
+        k = min(dc.val_holdout, max(0, len(train) - 1))
+        return train[: len(train) - k], train[len(train) - k:]
+    held: set[str] = set()
+    for eps in _by_task(train).values():
+        k = min(dc.val_holdout, len(eps) - 1)
+        held.update(r.name for r in eps[len(eps) - k:] if k > 0)
+    return [r for r in train if r.name not in held], _round_robin([r for r in train if r.name in held])
+
+
+def selection_score(per_task: dict[str, dict], reference: dict[str, dict], terms: Sequence[str]) -> float:
+    """``run.keep: best_score``: mean over the tasks of ``reference`` of the mean over ``terms`` of
+    value / the reference's value (the untrained model's validation: it scores exactly 1). A task or
+    term whose value is not finite makes the score inf (never kept); a reference value of 0 counts as
+    1e-12 (m or loss units: only a model as exact scores 1 on it)."""
+    vals = []
+    for task, ref in reference.items():
+        cur = per_task.get(task)
+        if cur is None:
+            return math.inf
+        for k in terms:
+            v, r = float(cur[k]), float(ref[k])
+            if not math.isfinite(v) or not math.isfinite(r):
+                return math.inf
+            vals.append(v / max(r, 1e-12))
+    return float(np.mean(vals)) if vals else math.inf
+
+
 MAX_SKIPPED_IN_A_ROW = 5
 
 
@@ -313,11 +370,45 @@ def clipped_step(opt: torch.optim.Optimizer, params, clip: float) -> tuple[float
     return gn, True
 
 
-def lr_at(cfg: TrainConfig, it: int) -> float:
+PARAM_GROUPS = ("network", "physics")
+
+
+def lr_at(cfg: TrainConfig, it: int, group: Optional[str] = None) -> float:
+    """Learning rate at iteration ``it``: the cosine decay of ``optim.lr`` to ``lr * lr_final_factor``
+    over the run; for a parameter group (``network`` / ``physics``) of its own peak rate, times
+    its linear warm-up ``(it + 1) / warmup_iters`` during the first ``warmup_iters`` iterations."""
     o = cfg.optim
     total = max(1, cfg.schedule.total_iters)
     f = o.lr_final_factor + (1 - o.lr_final_factor) * 0.5 * (1 + math.cos(math.pi * min(it, total) / total))
-    return o.lr * f
+    if group is None:
+        return o.lr * f
+    w = getattr(o, group).warmup_iters
+    return o.group_lr(group) * f * (min(1.0, (it + 1) / w) if w > 0 else 1.0)
+
+
+def param_groups(sim: Simulator) -> dict[str, list[nn.Parameter]]:
+    """The simulator's trainable parameters by optimiser group: ``network`` = the graph network and
+    the learned per-splat attributes it reads, ``physics`` = every effect's parameters. Raises if a
+    parameter belongs to neither (a new module must be placed in one deliberately)."""
+    groups: dict[str, list[nn.Parameter]] = {g: [] for g in PARAM_GROUPS}
+    for name, prm in sim.named_parameters():
+        if not prm.requires_grad:
+            continue
+        if name.startswith("gnn.") or name == "splat_attrs":
+            groups["network"].append(prm)
+        elif name.startswith("effects."):
+            groups["physics"].append(prm)
+        else:
+            raise ValueError(f"param_groups: parameter {name!r} is neither the network's nor an effect's")
+    return groups
+
+
+def make_optimizer(sim: Simulator, cfg: TrainConfig) -> torch.optim.Adam:
+    """Adam with one parameter group per :data:`PARAM_GROUPS` entry (in that order; an empty group is
+    left out), each at its iteration-0 learning rate (:func:`lr_at`)."""
+    o = cfg.optim
+    groups = [{"params": ps, "lr": lr_at(cfg, 0, g), "name": g} for g, ps in param_groups(sim).items() if ps]
+    return torch.optim.Adam(groups, lr=o.lr, betas=tuple(o.betas), weight_decay=o.weight_decay)
 
 
 # --------------------------------------------------------------------------- data
@@ -408,7 +499,8 @@ LOSS_TERMS = ("img", "silhouette", "depth", "points", "momentum")
 
 def frame_terms(sim_state: SimState, colors: torch.Tensor, opacities: torch.Tensor, ep: EpisodeData, t: int,
                 cfg: TrainConfig, device, points: Optional[torch.Tensor] = None,
-                plane: Optional[tuple[torch.Tensor, float]] = None) -> dict[str, torch.Tensor]:
+                plane: Optional[tuple[torch.Tensor, float]] = None,
+                scored_depth: bool = False) -> dict[str, torch.Tensor]:
     """Loss terms (scalars) of one predicted state against frame t in all cameras:
 
     * ``img``: the paper's lam masked-L2 + (1 - lam) D-SSIM on object pixels (robot pixels are
@@ -421,7 +513,9 @@ def frame_terms(sim_state: SimState, colors: torch.Tensor, opacities: torch.Tens
       completed by the table depth (``scored``; needs ``plane`` = (table normal [3], offset));
     * ``points`` (if weighted): mean distance (m) from each observed object point of the frame
       (``points`` [M, 3], the frame's fused masked depth) to the nearest predicted splat centre:
-      only what the cameras see is constrained, so occluded parts stay free.
+      only what the cameras see is constrained, so occluded parts stay free;
+    * ``depth_scored`` (with ``scored_depth``, whatever the weights): the ``depth`` term on the
+      scored region (validation's geometric figure; needs ``plane``).
     """
     lc = cfg.loss
     z = sim_state.means.new_zeros(())
@@ -441,23 +535,28 @@ def frame_terms(sim_state: SimState, colors: torch.Tensor, opacities: torch.Tens
         keep = (~ep.robot_mask[t].to(device)).to(out.alpha.dtype)
         m = mask.to(out.alpha.dtype)
         terms["silhouette"] = ((keep * (out.alpha - m) ** 2).sum(dim=(1, 2)) / m.sum(dim=(1, 2)).clamp_min(1.0)).mean()
-    if lc.depth_weight > 0:
+    def depth_term(region: str) -> torch.Tensor:
         gd = ep.depth[t].to(device=device, dtype=out.depth.dtype)
-        if lc.depth_region == "scored":
+        if region == "scored":
             if plane is None:
-                raise ValueError("frame_terms: loss.depth_region 'scored' needs the table plane")
+                raise ValueError("frame_terms: the depth on the scored region needs the table plane")
             table = table_depth(cams, plane[0], float(plane[1])).to(device=device)
-            pd, gdc, region = complete_depth_maps(out.depth, out.alpha, gd, ep.object_mask[t].to(device),
-                                                  ep.robot_mask[t].to(device), table)
-            m = region.to(pd.dtype)
+            pd, gdc, reg = complete_depth_maps(out.depth, out.alpha, gd, ep.object_mask[t].to(device),
+                                               ep.robot_mask[t].to(device), table)
+            m = reg.to(pd.dtype)
             err = m * (pd - gdc).abs()
         else:
             m = (mask & (gd > 0)).to(out.depth.dtype)
             err = m * (out.depth - gd).abs()
         if lc.camera_reduce == "camera":
-            terms["depth"] = (err.sum(dim=(1, 2)) / m.sum(dim=(1, 2)).clamp_min(1.0)).mean()
-        else:
-            terms["depth"] = err.sum() / m.sum().clamp_min(1.0)
+            return (err.sum(dim=(1, 2)) / m.sum(dim=(1, 2)).clamp_min(1.0)).mean()
+        return err.sum() / m.sum().clamp_min(1.0)
+
+    if lc.depth_weight > 0:
+        terms["depth"] = depth_term(lc.depth_region)
+    if scored_depth:
+        terms["depth_scored"] = terms["depth"] if lc.depth_weight > 0 and lc.depth_region == "scored" \
+            else depth_term("scored")
     if lc.points_weight > 0:
         if points is None:
             points = observed_points(ep, t, lc.points_max)
@@ -576,6 +675,9 @@ def gripper_follow(states: Sequence[SimState], ep: EpisodeData, up: torch.Tensor
             "n_splats": int(near.sum())}
 
 
+VAL_FIGURES = ("val_loss", "img", "depth", "points")
+
+
 @torch.no_grad()
 def validate(sim: Simulator, store: EpisodeStore, names: Sequence[str], cfg: TrainConfig,
              dist: Optional[DistInfo] = None) -> dict:
@@ -584,18 +686,23 @@ def validate(sim: Simulator, store: EpisodeStore, names: Sequence[str], cfg: Tra
 
     ``val_loss``: the training objective's data terms (:func:`total_loss` without the
     momentum regulariser) with the config's weights, mean over frames and episodes;
-    ``img``: the paper's image loss L_img alone; ``points``: mean distance (m) from the
-    observed object points to the nearest predicted splat (whatever its weight);
-    ``follow``: mean :func:`gripper_follow` ratio. Episodes are split over the ranks and
-    reduced."""
+    ``img``: the paper's image loss L_img alone; ``depth``: mean |depth error| (m) on the
+    evaluation's scored region (both maps completed with the table plane), whatever its weight;
+    ``points``: mean distance (m) from the observed object points to the nearest predicted splat
+    (whatever its weight); ``follow``: mean :func:`gripper_follow` ratio. ``per_task``: the same
+    figures per task of the episodes (``""`` = no task recorded), each the mean over that task's
+    frames. Episodes are split over the ranks and reduced."""
     dist = dist or DistInfo()
     was = sim.training
     sim.eval()
-    tot = img = pts = cnt = follow_sum = follow_n = 0.0
+    tasks = list(OrderedDict.fromkeys((store.refs[n].task or "") for n in names))
+    # per task: sums of the VAL_FIGURES, frame count, follow sum, follow count, episodes
+    acc = np.zeros((len(tasks), len(VAL_FIGURES) + 4))
     plane = _plane(store.bundle)
     for i, name in enumerate(names):
         if i % dist.world != dist.rank:
             continue
+        row = acc[tasks.index(store.refs[name].task or "")]
         ep = store.episode(name)
         states = rollout_full(sim, ep, store.initial_splats(name), store.bundle)
         init = store.initial_splats(name).to(device=sim.device, dtype=sim.dtype)
@@ -603,21 +710,27 @@ def validate(sim: Simulator, store: EpisodeStore, names: Sequence[str], cfg: Tra
         for t in frames:
             obs = observed_points(ep, t, cfg.loss.points_max)
             terms = frame_terms(states[t], init.colors(), init.opacities, ep, t, cfg, sim.device, points=obs,
-                                plane=plane)
+                                plane=plane, scored_depth=True)
             terms["momentum"] = terms["img"].new_zeros(())
-            tot += float(total_loss(terms, cfg))
-            img += float(terms["img"])
-            pts += _point_distance(states[t].means, obs)
-            cnt += 1
+            row[:4] += [float(total_loss(terms, cfg)), float(terms["img"]), float(terms["depth_scored"]),
+                        _point_distance(states[t].means, obs)]
+            row[4] += 1
         f = gripper_follow(states, ep, torch.as_tensor(store.bundle.table_normal))
         if f is not None:
-            follow_sum += f["ratio"]
-            follow_n += 1
-    tot, img, pts, cnt, follow_sum, follow_n = dist.all_reduce_sum([tot, img, pts, cnt, follow_sum, follow_n])
+            row[5] += f["ratio"]
+            row[6] += 1
+        row[7] += 1
+    acc = np.asarray(dist.all_reduce_sum(acc.ravel().tolist())).reshape(acc.shape)
     sim.train(was)
-    n = max(cnt, 1)
-    return {"val_loss": tot / n, "img": img / n, "points": pts / n,
-            "follow": (follow_sum / follow_n) if follow_n else float("nan"), "frames": int(cnt)}
+
+    def figures(r: np.ndarray) -> dict:
+        n = max(r[4], 1.0)
+        return {**{k: r[j] / n for j, k in enumerate(VAL_FIGURES)},
+                "follow": (r[5] / r[6]) if r[6] else float("nan"), "frames": int(r[4]), "episodes": int(r[7])}
+
+    out = figures(acc.sum(axis=0))
+    out["per_task"] = {task: figures(acc[j]) for j, task in enumerate(tasks)}
+    return out
 
 
 _IDENTIFY_ATTR = {"stretch": "log_stretch", "bend": "log_bend", "grip": "log_grip", "tilt": "log_tilt",
@@ -768,6 +881,60 @@ class RunLog:
         os.replace(tmp, out)
 
 
+VAL_TASKS_COLUMNS = ["iteration", "task", *VAL_FIGURES, "follow", "score_terms_ratio"]
+
+
+def write_val_tasks(out_dir: Path, history: Sequence[dict], terms: Sequence[str], kept: Optional[int],
+                    title: str = "") -> None:
+    """``val_tasks.csv`` (one row per validation and task, the figures of :func:`validate`, and the
+    task's mean ratio of ``terms`` to its first validation = its share of the selection score) and
+    ``val_tasks.png`` (one panel per figure, a line per task; ``kept``: the kept iteration, marked)."""
+    rows = [h for h in history if h.get("per_task")]
+    if not rows:
+        return
+    first = rows[0]["per_task"]
+    table = []
+    for h in rows:
+        for task, f in h["per_task"].items():
+            ref = first.get(task)
+            ratio = float(np.mean([f[k] / max(ref[k], 1e-12) for k in terms])) if ref else float("nan")
+            table.append({"iteration": h["iteration"], "task": task or "-", **{k: f[k] for k in VAL_FIGURES},
+                          "follow": f.get("follow", float("nan")), "score_terms_ratio": ratio})
+    tmp = out_dir / ".val_tasks.csv.tmp"
+    with open(tmp, "w", newline="") as fh:
+        w = csv.DictWriter(fh, VAL_TASKS_COLUMNS)
+        w.writeheader()
+        for r in table:
+            w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+    os.replace(tmp, out_dir / "val_tasks.csv")
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [("score_terms_ratio", f"mean of {'+'.join(terms)} / untrained"), ("img", "image loss L_img"),
+              ("depth", "depth |error| (m, scored region)"), ("points", "point distance (m)")]
+    fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 3.4), dpi=100)
+    for ax, (key, label) in zip(axes, panels):
+        for j, task in enumerate(dict.fromkeys(r["task"] for r in table)):
+            pts = [(r["iteration"], r[key]) for r in table if r["task"] == task]
+            x, y = np.array(pts).T
+            ax.plot(x, y, "o-", ms=3, color=f"C{j}", label=task)
+        if kept is not None:
+            ax.axvline(kept, color="0.4", ls="--", lw=0.8)
+        ax.set_title(label, fontsize=9)
+        ax.set_xlabel("iteration")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8, title="task" + (" (-- kept)" if kept is not None else ""), title_fontsize=8)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    tmp = out_dir / ".val_tasks.tmp.png"
+    fig.savefig(tmp)
+    plt.close(fig)
+    os.replace(tmp, out_dir / "val_tasks.png")
+
+
 # --------------------------------------------------------------------------- the run
 def _config_fingerprint(cfg: TrainConfig) -> dict:
     """The parts of the config a resumed run must share with the original."""
@@ -833,11 +1000,14 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
     train_refs = usable_episodes(load_dataset(data_dir, dc.train_split, dc.tasks, **split_args), robot, dc, say)
     if dist.is_main:
         write_split(out_dir, data_dir, load_dataset(data_dir, **split_args), **split_args)
-    if dc.val_split is not None:
-        val_refs = usable_episodes(load_dataset(data_dir, dc.val_split, dc.tasks, **split_args), robot, dc, say)
-    else:
-        k = min(dc.val_holdout, max(0, len(train_refs) - 1))
-        val_refs, train_refs = train_refs[len(train_refs) - k:], train_refs[: len(train_refs) - k]
+    val_refs = (usable_episodes(load_dataset(data_dir, dc.val_split, dc.tasks, **split_args), robot, dc, say)
+                if dc.val_split is not None else None)
+    train_refs, val_refs = split_validation(train_refs, val_refs, dc)
+    if dc.val_stratify and val_refs:
+        missing = sorted({r.task or "" for r in train_refs} - {r.task or "" for r in val_refs[: cfg.run.val_episodes]})
+        if missing:
+            say(f"validation sees no episode of task(s) {', '.join(missing)} (a single training episode each, "
+                "or run.val_episodes too small)")
     if dc.max_train_episodes:
         train_refs = train_refs[: dc.max_train_episodes]
     if dc.max_val_episodes:
@@ -886,8 +1056,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
             find_unused_parameters=True)
     else:
         ddp = module
-    opt = torch.optim.Adam(sim.parameters(), lr=cfg.optim.lr, betas=tuple(cfg.optim.betas),
-                           weight_decay=cfg.optim.weight_decay)
+    opt = make_optimizer(sim, cfg)
     start_it = 0
     resumed_from = []
     if resume is not None:
@@ -906,7 +1075,9 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
     runlog = RunLog(out_dir / "log.csv", start_it if resume is not None else None) if dist.is_main else None
     best_val = float(resume["best_val"]) if resume is not None and resume.get("best_val") is not None else None
     # the kept weights' criterion: the validation loss (run.keep: best) or point distance (best_points)
-    crit = "points" if cfg.run.keep == "best_points" else "val_loss"
+    # (best_score: the selection score against the untrained model's per-task validation, score_ref)
+    crit = {"best_points": "points", "best_score": "score"}.get(cfg.run.keep, "val_loss")
+    score_ref = resume.get("score_ref") if resume is not None else None
     best_score = resume.get("best_score", best_val) if resume is not None else None
     first_val = resume.get("first_val") if resume is not None else None
     last_val = resume.get("last_val") if resume is not None else None
@@ -924,7 +1095,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         payload = {"format": TRAIN_STATE_FORMAT, "iteration": it, "epoch": epoch,
                    "model": {k: v.detach().cpu() for k, v in sim.state_dict().items()},
                    "optimizer": _to_cpu(opt.state_dict()), "fingerprint": json.loads(json.dumps(_config_fingerprint(cfg))),
-                   "best_val": best_val, "best_score": best_score, "best_criterion": crit,
+                   "best_val": best_val, "best_score": best_score, "best_criterion": crit, "score_ref": score_ref,
                    "first_val": first_val, "last_val": last_val, "resumed_from": resumed_from,
                    "val_history": val_history, "best_iteration": best_iteration, "best_model": best_state,
                    "identified": identified, "skipped_iterations": guard.skipped, "rollbacks": guard.rollbacks,
@@ -952,13 +1123,19 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
             save_checkpoint(out_dir / "checkpoint.pt", sim, extra=extra)
 
     def run_validation(it: int, epoch: int) -> None:
-        nonlocal best_val, best_score, first_val, last_val, best_iteration, best_state
+        nonlocal best_val, best_score, first_val, last_val, best_iteration, best_state, score_ref
         if not val_names:
             return
         t0 = time.time()
         v = validate(sim, store, val_names, cfg, dist)
         last_val = v["val_loss"]
-        val_history.append({"iteration": it, **{k: float(v[k]) for k in ("val_loss", "img", "points", "follow")}})
+        if score_ref is None:  # the untrained model's per-task figures: the selection score's reference
+            score_ref = {t: {k: float(f[k]) for k in VAL_FIGURES} for t, f in v["per_task"].items()}
+        v["score"] = selection_score(v["per_task"], score_ref, cfg.run.score_terms)
+        val_history.append({"iteration": it, **{k: float(v[k]) for k in ("val_loss", "img", "depth", "points",
+                                                                          "follow", "score")},
+                            "per_task": {t: {k: float(f[k]) for k in (*VAL_FIGURES, "follow")}
+                                         for t, f in v["per_task"].items()}})
         if first_val is None:
             first_val = v["val_loss"]
         score = float(v[crit]) if math.isfinite(float(v[crit])) else math.inf  # no observed points: never better
@@ -969,6 +1146,8 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
             runlog.add(kind="val", iteration=it, epoch=epoch, loss=v["val_loss"], img=v["img"],
                        points=v["points"], seconds=time.time() - t0, follow=v["follow"])
             runlog.plot(out_dir / "loss.png", f"{cfg.name}: {len(train_names)} train / {len(val_names)} val episodes")
+            write_val_tasks(out_dir, val_history, cfg.run.score_terms, best_iteration,
+                            f"{cfg.name}: validation per task ({len(val_names)} episodes)")
 
     identified = resume.get("identified") if resume is not None else None
     # iterations whose loss or gradient was not finite (no step taken), kept across a resume
@@ -978,7 +1157,7 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
     if start_it == 0 and first_val is None and cfg.identify.values:
         k = min(cfg.identify.episodes, len(train_names))
         picks = [train_names[int(i)] for i in np.unique(np.linspace(0, len(train_names) - 1, k).round().astype(int))]
-        identified = identify_prior(sim, store, picks, cfg, crit, dist, say)
+        identified = identify_prior(sim, store, picks, cfg, "val_loss" if crit == "score" else crit, dist, say)
         if dist.is_main:
             _atomic_write_text(out_dir / "identify.json", json.dumps(identified, indent=1))
     if start_it == 0 and first_val is None:
@@ -1006,9 +1185,9 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         ep = store.episode(name)
         init = store.initial_splats(name)
         plan = plan_rollout(info, name, ep.num_frames, rng, store.contact(name, reach), cfg.schedule.stage1.sim_step)
-        lr = lr_at(cfg, it) * guard.lr_scale
         for g in opt.param_groups:
-            g["lr"] = lr
+            g["lr"] = lr_at(cfg, it, g["name"]) * guard.lr_scale
+        lr = opt.param_groups[0]["lr"]  # the log's lr: the network's (the first group)
         t0 = time.time()
         loss, parts = ddp(ep, init, plan)
         finite_loss = bool(torch.isfinite(loss.detach()))
@@ -1065,7 +1244,8 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         _atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=1))
     if cfg.run.keep != "last" and best_iteration is not None and first_val is not None:
         say(f"kept iteration {best_iteration} in checkpoint.pt (validation loss {best_val:.5f}; untrained "
-            f"{first_val:.5f}; last {last_val:.5f})")
+            f"{first_val:.5f}; last {last_val:.5f}" + (f"; selection score {best_score:.4f}, untrained 1"
+                                                      if crit == "score" else "") + ")")
         if best_iteration == 0 and it > 0:
             say("training did not improve on the untrained model's validation: checkpoint.pt holds the untrained "
                 "weights, checkpoint_last.pt the last ones")

@@ -20,7 +20,7 @@ from soma_ros.core.scoring import METRICS, chamfer_distance, complete_depth_maps
 
 torch.set_num_threads(1)
 
-VARIANTS = ["full", "static", "state_only", "spring_mass", "img_only", "no_mrt"]
+VARIANTS = ["full", "prior_only", "static", "state_only", "spring_mass", "img_only", "no_mrt"]
 
 
 def _bench() -> BenchConfig:
@@ -63,6 +63,7 @@ def test_table_shape_and_files(bench_run):
     md = (out / "table.md").read_text()
     assert "## rope" in md and "Gener. PSNR ↑" in md and "Resim. Chamfer (m) ↓" in md
     assert "RMSE: full" in md and "vs static" in md and "vs state_only" in md
+    assert "full vs prior_only" in md and "| mean over tasks |" in md
     meta = json.loads((out / "bench.json").read_text())
     assert meta["objects"]["rope"]["episodes"] == {"train": 1, "test": 1}
     for v in VARIANTS:
@@ -122,7 +123,7 @@ def test_bench_never_selects_on_the_test_split():
         b = load_bench_config(preset)
         for v in ("full", "state_only", "img_only", "no_mrt"):
             c = variant_train_config(b, "rope", v)
-            assert c.data.val_split is None and c.data.val_holdout >= 1 and c.run.keep == "best"
+            assert c.data.val_split is None and c.data.val_holdout >= 1 and c.run.keep in ("best", "best_score")
             _check_no_test_selection(c, v)
     bad = variant_train_config(_bench(), "rope", "full")
     bad.data.val_split = "test"
@@ -187,6 +188,14 @@ def test_soma_eval_cli_reproduces_the_bench_numbers(bench_run, tmp_path):
                "--no-lpips", "--no-sheets"])
     assert rc == 0 and "lpips" not in json.loads((tmp_path / "sm" / "metrics.json").read_text())["mean"]
     assert main(["eval", "--checkpoint", "static", "--data", str(out / "data" / "rope_tiny")]) == 1
+    # --prior-only: the bench's prior_only row (full's kept checkpoint, network off)
+    rc = main(["eval", "--checkpoint", str(run), "--prior-only", "--data", str(out / "data" / "rope_tiny"), "--split",
+               "test", "--out", str(tmp_path / "prior"), "--quiet"])
+    got = json.loads((tmp_path / "prior" / "metrics.json").read_text())
+    ref = json.loads((out / "eval" / "rope" / "test" / "prior_only" / "metrics.json").read_text())
+    assert rc == 0 and got["variant"] == "prior_only" and got["model"]["network"] is False
+    for m in METRICS:
+        assert got["mean"][m] == pytest.approx(ref["mean"][m], rel=1e-6, abs=1e-9), m
 
 
 def test_rerun_reuses_finished_steps(bench_run):

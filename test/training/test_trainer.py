@@ -361,7 +361,11 @@ def test_schedule_plans():
     from soma_ros.training.config import load_train_config
     from soma_ros.training.train import plan_rollout, stage_at
 
-    cfg = load_train_config("tiny")
+    tiny = load_train_config("tiny")  # whole-episode rollouts from the first iteration
+    assert [stage_at(tiny, e).steps for e in range(tiny.schedule.stage1.epochs)] == [8] * 4
+    p = plan_rollout(stage_at(tiny, 0), "e", 40, np.random.default_rng(0), contact=13, sim_step="frame")
+    assert p.supervised == [16, 20, 24, 28, 32, 36] and p.frames == list(range(13, 37))  # capped by the episode
+    cfg = load_train_config("tiny", {"schedule": {"stage1": {"length_start": 2, "length_growth": 2}}})
     rng = np.random.default_rng(0)
     i0 = stage_at(cfg, 0)
     assert (i0.stage, i0.stride, i0.steps) == (1, 4, 2)
@@ -410,12 +414,12 @@ def test_keep_best_points_keeps_the_lowest_validation_point_distance(lift_datase
     from soma_ros.training.config import ConfigError, load_train_config
     from soma_ros.training.train import train
 
-    with pytest.raises(ConfigError, match="run.keep: one of best, best_points, last"):
+    with pytest.raises(ConfigError, match="run.keep: one of best, best_points, best_score, last"):
         load_train_config("tiny", {"run": {"keep": "lowest"}})
     over = {"scene": {"photometric_iters": 3, "num_splats": 400},
             "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 3, "stride": 2, "length_start": 2},
                          "stage2": {"epochs": 1, "window": 3}},
-            "optim": {"lr": 3e-2},  # big steps: validations that differ
+            "optim": {"lr": 3e-2, "network": {"lr": None, "warmup_iters": 0}},  # big steps: validations that differ
             "run": {"val_episodes": 1, "val_frame_stride": 6, "keep": "best_points"}}
     run = tmp_path / "run"
     s = train(load_train_config("tiny", over), lift_dataset, run, log=lambda *a, **k: None)
@@ -432,6 +436,42 @@ def test_keep_best_points_keeps_the_lowest_validation_point_distance(lift_datase
     s2 = train(load_train_config("tiny", over2), lift_dataset, run, log=lambda *a, **k: logs.append(a[0]))
     assert any("run.keep changed to best" in m for m in logs), logs
     assert s2["best_iteration"] == s2["total_iterations"] == 5 and s2["kept"] == "best"
+
+
+def test_keep_best_score_selects_on_every_validation_task_and_writes_their_curves(lift_dataset, tmp_path):
+    """``run.keep: best_score`` (the tiny config's): the kept weights are those of the lowest selection
+    score -- image loss, scored-region depth and point distance per validation task relative to the
+    untrained model (which scores exactly 1) --, and the run writes the per-task validation curves
+    (``val_tasks.csv``, ``val_tasks.png``)."""
+    from soma_ros.core.checkpoint import read_checkpoint
+    from soma_ros.training.config import load_train_config
+    from soma_ros.training.train import selection_score, train
+
+    over = {"scene": {"photometric_iters": 3, "num_splats": 400},
+            "schedule": {"iters_per_epoch": 1, "stage1": {"epochs": 3, "stride": 2, "length_start": 4},
+                         "stage2": {"epochs": 1, "window": 3}},
+            "optim": {"lr": 3e-2, "network": {"lr": 1e-2, "warmup_iters": 2}},
+            "run": {"val_episodes": 1, "val_frame_stride": 6}}
+    cfg = load_train_config("tiny", over)
+    assert cfg.run.keep == "best_score" and cfg.run.score_terms == ["img", "depth", "points"]
+    run = tmp_path / "run"
+    s = train(cfg, lift_dataset, run, log=lambda *a, **k: None)
+    hist = s["val_history"]
+    assert len(hist) == 5 and hist[0]["score"] == 1.0 and len({h["score"] for h in hist}) > 1, hist
+    ref = hist[0]["per_task"]
+    assert list(ref) == ["lift"] and all(ref["lift"][k] > 0 for k in ("img", "depth", "points"))
+    for h in hist:
+        assert h["score"] == pytest.approx(selection_score(h["per_task"], ref, cfg.run.score_terms))
+    best = min(hist, key=lambda h: h["score"])
+    kept = read_checkpoint(run / "checkpoint.pt")["extra"]
+    assert kept["kept"] == "best_score" and kept["iteration"] == s["best_iteration"] == best["iteration"]
+    assert s["kept_score"] == pytest.approx(best["score"])
+    with open(run / "val_tasks.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["iteration"]) for r in rows] == [h["iteration"] for h in hist] and {r["task"] for r in rows} == {"lift"}
+    assert [float(r["score_terms_ratio"]) for r in rows] == pytest.approx([h["score"] for h in hist], rel=1e-5)
+    assert float(rows[2]["depth"]) == pytest.approx(hist[2]["per_task"]["lift"]["depth"], rel=1e-5)
+    assert (run / "val_tasks.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def _identify_over(identify: dict) -> dict:
@@ -679,7 +719,8 @@ def test_a_run_of_non_finite_steps_rolls_back_to_the_kept_weights(lift_dataset, 
     assert seen[1]["checksum"] != seen[0]["checksum"]  # iteration 0 stepped
     assert seen[6]["checksum"] == pytest.approx(seen[0]["checksum"], rel=1e-12)  # the untrained weights again
     assert seen[5]["adam_state"] > 0 and seen[6]["adam_state"] == 0
-    assert seen[6]["lr"] == pytest.approx(0.5 * T.lr_at(cfg, 6)) and seen[0]["lr"] == pytest.approx(T.lr_at(cfg, 0))
+    assert seen[6]["lr"] == pytest.approx(0.5 * T.lr_at(cfg, 6, "network"))  # param_groups[0]: the network's
+    assert seen[0]["lr"] == pytest.approx(T.lr_at(cfg, 0, "network"))
     seen.clear()
     cfg0 = load_train_config("tiny", {**over, "optim": {"max_rollbacks": 0}})
     with pytest.raises(RuntimeError, match=r"iterations \[1, 2, 3, 4, 5\]: 5 non-finite .* after 0 rollback"):
