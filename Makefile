@@ -33,11 +33,12 @@ export PYTHONUNBUFFERED := 1
 
 PYTEST_ARGS ?=
 
-.PHONY: help setup sysdeps venv msgs install test demo bench clean distclean
+.PHONY: help setup sysdeps venv msgs install test test-fast demo bench clean distclean
 
 help:
 	@echo "make demo   - run the main job on the embedded default (writes runs/demo/)"
 	@echo "make test   - run the whole test suite"
+	@echo "make test-fast - the tests that need no generated world or trained model (a few minutes)"
 	@echo "make setup  - only bootstrap (.venv, soma_msgs, editable install)"
 	@echo "make bench  - core speed benchmarks (soma bench core)"
 
@@ -86,6 +87,9 @@ install: $(STAMP_PKG)
 
 test: $(STAMP_PKG)
 	$(PY) -m pytest test -q -p no:cacheprovider --timeout=900 $(PYTEST_ARGS)
+
+test-fast: $(STAMP_PKG)
+	$(PY) -m pytest test -q -p no:cacheprovider --timeout=900 -m "not slow" $(PYTEST_ARGS)
 
 demo: $(STAMP_PKG)
 	$(PY) -m soma_ros.demo --out runs/demo

@@ -105,3 +105,22 @@ def train_tiny_run(data: Path, run: Path, episodes: int, frames: int, seed: int 
                      "stage2": {"epochs": 1, "window": 3}},
         "run": {"val_episodes": 1, "val_frame_stride": 3}})
     train(cfg, data, run, log=lambda *a, **k: None)
+
+
+#: Fixtures that generate reference-world bags, train a model or run one for minutes: a test
+#: that uses one is marked ``slow``; ``make test-fast`` runs the others (``-m "not slow"``).
+HEAVY_FIXTURES = {
+    "tiny_run", "resim_out", "good_dataset", "clean_run", "bench_run", "trained_run", "two_episodes",
+    "world", "reference", "world_bag", "rope_bag", "reference_scene", "guarded", "lift_dataset", "worlds",
+    "reports", "bag",
+}
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "slow: generates worlds, trains or runs a model for long (not in make test-fast)")
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if HEAVY_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)

@@ -16,6 +16,17 @@ import pytest
 from soma_ros.bagtypes import typestore
 
 
+
+def _all_fields(cls, **given):
+    """A rosbags message with the given fields and every other numeric field set to a distinct
+    non-zero value (so the round trip checks fields added to the message later too)."""
+    import dataclasses
+
+    for k, f in enumerate(dataclasses.fields(cls)):
+        if f.name not in given and f.name != "__msgtype__":
+            given[f.name] = 3.5 + k if "float" in str(f.type) else 11 + k
+    return cls(**given)
+
 def same(a, b, path="msg") -> None:
     """Deep equality of rosbags messages (numpy arrays compared by dtype and content)."""
     if dataclasses.is_dataclass(a):
@@ -58,7 +69,7 @@ def samples():
             header=header("soma_sim"), height=1, width=3, fields=[field("x", 0), field("y", 4), field("z", 8)],
             is_bigendian=False, point_step=12, row_step=36, data=rng.integers(0, 256, 36, dtype=np.uint8),
             is_dense=True),
-        "status": T["soma_msgs/msg/SimStatus"](
+        "status": _all_fields(T["soma_msgs/msg/SimStatus"],
             header=header("soma_sim"), state="running", step=2**40 + 3, num_splats=13000, step_time_ms=1.5,
             render_time_ms=2.25, joint_state_lag_ms=0.5, step_rate_hz=30.0, image_rate_hz=10.0,
             joint_states_received=7, joint_states_rejected=1, failure_restarts=2, settles=1),
