@@ -14,6 +14,7 @@ import sys
 from typing import Optional, Sequence
 
 from . import __version__
+from .core.errors import SomaError
 
 #: (subcommand name, module under soma_ros.commands, one-line help)
 COMMANDS: list[tuple[str, str, str]] = [
@@ -41,6 +42,7 @@ def build_parser(argv: Optional[Sequence[str]] = None) -> argparse.ArgumentParse
         description="soma_ros: a learned real-to-sim simulator of soft-body manipulation, served on ROS 2.",
     )
     parser.add_argument("--version", action="version", version=f"soma_ros {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     wanted = None
     if argv:
@@ -72,10 +74,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except KeyboardInterrupt:
         print("soma: interrupted", file=sys.stderr)
         return 130
-    except (FileNotFoundError, ValueError, RuntimeError) as exc:
-        # User-facing errors: one line naming the problem, no traceback.
-        print(f"soma {args.command}: error: {exc}", file=sys.stderr)
-        return 1
+    except (SomaError, OSError, ValueError, RuntimeError) as exc:
+        # User-facing errors: one line naming the problem, exit code 2; --debug shows the traceback.
+        if args.debug:
+            raise
+        print(f"soma {args.command}: error: {' '.join(str(exc).split()) or type(exc).__name__}", file=sys.stderr)
+        return 2
     return int(rc or 0)
 
 

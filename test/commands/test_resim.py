@@ -277,7 +277,7 @@ def test_bad_inputs_are_one_line_errors(tiny_run, tmp_path, capsys):
         capsys.readouterr()
         rc = main(["resim", "--checkpoint", str(run), "--out", str(tmp_path / "out"), "--quiet", *args])
         err = capsys.readouterr().err.strip()
-        assert rc == 1, (args, err)
+        assert rc == 2, (args, err)
         assert err.startswith("soma resim: error: ") and "\n" not in err and "Traceback" not in err, err
         for n in needles:
             assert n in err, (n, err)

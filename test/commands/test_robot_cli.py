@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-PANDA = ROOT / "soma_ros" / "data" / "robots" / "franka_panda" / "panda.urdf"
-ARX5 = ROOT / "soma_ros" / "data" / "robots" / "arx5" / "X5.urdf"
+PANDA = ROOT / "soma_ros" / "resources" / "robots" / "franka_panda" / "panda.urdf"
+ARX5 = ROOT / "soma_ros" / "resources" / "robots" / "arx5" / "X5.urdf"
 
 
 def _soma(*args: str) -> subprocess.CompletedProcess:
@@ -61,7 +61,7 @@ def test_check_arx5_config() -> None:
 )
 def test_check_fails_with_one_line(args, expect) -> None:
     r = _soma(*args)
-    assert r.returncode == 1
+    assert r.returncode == 2
     assert r.stdout == ""
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
@@ -73,12 +73,12 @@ def test_check_broken_urdf(tmp_path) -> None:
     text = PANDA.read_text().replace('<child link="panda_link4"/>', '<child link="panda_link44"/>')
     broken.write_text(text)
     r = _soma("--urdf", str(broken), "--ee-link", "panda_hand")
-    assert r.returncode == 1
+    assert r.returncode == 2
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1, r.stderr
     assert "joint 'panda_joint4' names child link 'panda_link44', which is not defined" in lines[0]
     truncated = tmp_path / "truncated.urdf"
     truncated.write_text(PANDA.read_text()[:3000])
     r = _soma("--urdf", str(truncated), "--ee-link", "panda_hand")
-    assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
     assert "truncated.urdf: malformed XML" in r.stderr

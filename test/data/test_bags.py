@@ -224,7 +224,7 @@ def test_soma_train_reports_a_broken_bag_in_one_line(good_dataset, tmp_path):
     p = subprocess.run([sys.executable, "-m", "soma_ros.cli", "train", "--data", str(data), "--config", "tiny",
                         "--out", str(tmp_path / "run"), "--quiet"], capture_output=True, text=True, env=env,
                        timeout=300)
-    assert p.returncode == 1, p.stderr[-2000:]
+    assert p.returncode == 2, p.stderr[-2000:]
     lines = [ln for ln in p.stderr.strip().splitlines() if ln.strip()]
     assert len(lines) == 1, p.stderr
     assert lines[0].startswith("soma train: error:") and "/cam_wrist/color/image_raw" in lines[0] and "yuv422" in lines[0]

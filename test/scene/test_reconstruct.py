@@ -40,7 +40,7 @@ def test_real_capture_holdout(shared_dir, tmp_path):
     assert math.isfinite(m["psnr_holdout_init"]) and len(m["psnr_train_views"]) == 3
     assert (out / "holdout_compare.png").is_file() and (out / "splats.ply").is_file()
     bad = _soma("reconstruct", "--capture", str(cap), "--holdout-view", "7", "--out", str(tmp_path / "x"), "--quiet")
-    assert bad.returncode == 1 and "out of range" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    assert bad.returncode == 2 and "out of range" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
 
 
 @pytest.fixture(scope="module")

@@ -384,9 +384,9 @@ def test_cli_help_and_errors(tmp_path):
     for word in ("--object", "--preset", "--effects", "--storage", "EVALUATION-ONLY", "/world/object_points", "manifest.json"):
         assert word in r.stdout
     r = _soma("world", "--object", "rope", "--out", str(tmp_path / "x"), "--effects", "wnd")
-    assert r.returncode == 1 and "unknown effect 'wnd'" in r.stderr and r.stderr.count("\n") == 1
+    assert r.returncode == 2 and "unknown effect 'wnd'" in r.stderr and r.stderr.count("\n") == 1
     r = _soma("world", "--object", "rope", "--out", str(tmp_path / "y"), "--task", "fold")
-    assert r.returncode == 1 and "fold" in r.stderr and r.stderr.count("\n") == 1
+    assert r.returncode == 2 and "fold" in r.stderr and r.stderr.count("\n") == 1
 
 
 def test_cli_generates(tmp_path):
@@ -398,7 +398,7 @@ def test_cli_generates(tmp_path):
     m = json.loads((tmp_path / "d" / "manifest.json").read_text())
     assert m["effects"] == ["wind"]
     r = _soma("world", "--object", "rope", "--episodes", "1", "--frames", "8", "--quiet", "--out", str(tmp_path / "d"))
-    assert r.returncode == 1 and "--overwrite" in r.stderr
+    assert r.returncode == 2 and "--overwrite" in r.stderr
 
 
 def test_drop_lifts_the_rope_then_lets_it_fall_back_onto_the_table(cfg, tmp_path):
