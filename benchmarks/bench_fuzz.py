@@ -84,7 +84,6 @@ class Node:
 
         self.domain = unique_domain_id()
         os.environ["ROS_DOMAIN_ID"] = str(self.domain)
-        self.shm_before = set(os.listdir("/dev/shm"))
         self.ctx = Context()
         rclpy.init(args=[], context=self.ctx, domain_id=self.domain)
         args = ["--ros-args", "-p", f"checkpoint:={run[0]}", "-p", f"scene:={run[1]}"]
@@ -99,6 +98,8 @@ class Node:
                     or not self.proc.alive(), timeout)
         if not (ok and self.proc.alive()):
             raise RuntimeError(f"soma_sim_node did not start:\n{self.proc.output()[-4000:]}")
+        # the shared-memory files the node has mapped (its DDS segments and lock files)
+        self.shm = {ln.split()[-1] for ln in open(f"/proc/{self.proc.proc.pid}/maps") if "/dev/shm/" in ln}
 
     def stop_by_signal(self, sig: int, during: Optional[Callable[[], None]] = None) -> float:
         """Send ``sig`` (while ``during`` runs in a thread, if given); seconds until the process exits."""
@@ -118,7 +119,8 @@ class Node:
         self.probe.close()
         if self.ctx.ok():
             rclpy.shutdown(context=self.ctx)
-        left = sorted(set(os.listdir("/dev/shm")) - self.shm_before)
+        left = sorted(m for m in getattr(self, "shm", ()) if os.path.exists(m)
+                      and not Path(m).name.startswith("lttng-ust-wait-"))  # LTTng's per-user files stay by design
         return {"rc": self.proc.proc.returncode, "shm_left": left, "output": self.proc.output()}
 
 
@@ -408,7 +410,8 @@ def format_report(r: dict, args) -> str:
         lines.append(f"SIGTERM during a 1 kHz flood: exit after {r['sigterm_during_flood_s']:.2f} s (rc {r['sigterm_during_flood_rc']})")
         lines.append(f"SIGINT idle: exit after {r['sigint_idle_s']:.2f} s (rc {r['sigint_idle_rc']})   target: < 2 s each")
         left = r["shm_left_main"] + r["shm_left_sigterm_during_flood_s"] + r["shm_left_sigint_idle_s"]
-        lines.append(f"/dev/shm entries left by the three nodes: {left or 'none'}")
+        lines.append(f"shared-memory files the three nodes had mapped that remain after exit: {left or 'none'} "
+                     f"(fastrtps_port* lock files are shared by all participants on the machine)")
     return "\n".join(lines)
 
 
