@@ -318,3 +318,19 @@ def test_sigterm_stops_a_node_with_a_reset_running_and_leaves_no_shared_memory(g
     # kept by design: LTTng-UST's per-user wait files and Fast DDS's per-port lock files, which
     # other participants on the machine share; the node's own segments must be gone
     assert not [m for m in left if not Path(m).name.startswith(("lttng-ust-wait-", "fastrtps_port", "sem.fastrtps_port"))], left
+
+
+def test_the_guard_parameters_cannot_be_changed_at_run_time(guarded):
+    """scene_dirs and the limits are read once at start and are read-only: a parameter client on
+    the domain cannot widen them."""
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+
+    p = guarded["probe"]
+    client = AsyncParameterClient(p.node, "soma_sim_node")
+    assert client.wait_for_services(timeout_sec=30)
+    fut = client.set_parameters([Parameter("scene_dirs", value=["/"]), Parameter("max_splats", value=10**9)])
+    assert p.spin_until(fut.done, 30)
+    results = fut.result().results
+    assert len(results) == 2 and not any(r.successful for r in results), results
+    _refused(guarded, GENERIC_REFUSAL, ply_path="/etc/passwd")  # still the old folders

@@ -50,7 +50,8 @@ from typing import NamedTuple, Optional
 import numpy as np
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, JointState, PointCloud2
 from soma_msgs.msg import SimStatus
@@ -244,8 +245,10 @@ class SomaSimNode(Node):
         # holds up the executor that takes /joint_states
         self._reset_node = rclpy.create_node(f"{self.get_name()}_reset", namespace=self.get_namespace(),
                                              context=self.context, start_parameter_services=False)
-        self.srv_reset = self._reset_node.create_service(ResetScene, f"{prefix}/reset", self._on_reset)
-        self._reset_executor = SingleThreadedExecutor(context=self.context)
+        # reentrant on two threads: a request that arrives while a reset runs is taken and answered "busy"
+        self.srv_reset = self._reset_node.create_service(ResetScene, f"{prefix}/reset", self._on_reset,
+                                                         callback_group=ReentrantCallbackGroup())
+        self._reset_executor = MultiThreadedExecutor(num_threads=2, context=self.context)
         self._reset_executor.add_node(self._reset_node)
         self._reset_thread = threading.Thread(target=self._spin_reset, name="soma_reset_srv", daemon=True)
         self._reset_mutex = threading.Lock()  # guards _reset_busy
