@@ -288,13 +288,12 @@ def test_sigterm_stops_a_node_with_a_reset_running_and_leaves_no_shared_memory(g
     os.environ["ROS_DOMAIN_ID"] = str(domain)
     ctx = Context()
     rclpy.init(context=ctx, domain_id=domain)
-    before = set(os.listdir("/dev/shm"))
     node = RosProcess(SIM, sim_node_args(untrained_run[0], untrained_run[1], "-p", "render_rate_hz:=2.0"),
                       ros_env(domain), name="sim_node_sigterm")
     probe = LiveProbe(ctx, guarded["live"].required_joints, cameras=())
     try:
         assert probe.hold(guarded["hover"], lambda: probe.last_status() is not None or not node.alive(), START_TIMEOUT)
-        during = set(os.listdir("/dev/shm"))
+        mapped = {ln.split()[-1] for ln in open(f"/proc/{node.proc.pid}/maps") if "/dev/shm/" in ln}
         req = ResetScene.Request()
         req.splats = _cloud(_rope(150_000))  # valid, within limits: seconds of hierarchy building
         assert probe.reset_client.wait_for_service(timeout_sec=30)
@@ -315,7 +314,23 @@ def test_sigterm_stops_a_node_with_a_reset_running_and_leaves_no_shared_memory(g
         node.stop()
         if ctx.ok():
             rclpy.shutdown(context=ctx)
-    left = (set(os.listdir("/dev/shm")) - before) & (during - before)
-    # Fast DDS's per-port lock files (fastrtps_port*) are shared by every participant on the
-    # machine and stay by design; the node's own segments must be gone
-    assert not [f for f in left if not f.startswith(("fastrtps_port", "sem.fastrtps_port"))], sorted(left)
+    left = sorted(m for m in mapped if os.path.exists(m))
+    # kept by design: LTTng-UST's per-user wait files and Fast DDS's per-port lock files, which
+    # other participants on the machine share; the node's own segments must be gone
+    assert not [m for m in left if not Path(m).name.startswith(("lttng-ust-wait-", "fastrtps_port", "sem.fastrtps_port"))], left
+
+
+def test_the_guard_parameters_cannot_be_changed_at_run_time(guarded):
+    """scene_dirs and the limits are read once at start and are read-only: a parameter client on
+    the domain cannot widen them."""
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+
+    p = guarded["probe"]
+    client = AsyncParameterClient(p.node, "soma_sim_node")
+    assert client.wait_for_services(timeout_sec=30)
+    fut = client.set_parameters([Parameter("scene_dirs", value=["/"]), Parameter("max_splats", value=10**9)])
+    assert p.spin_until(fut.done, 30)
+    results = fut.result().results
+    assert len(results) == 2 and not any(r.successful for r in results), results
+    _refused(guarded, GENERIC_REFUSAL, ply_path="/etc/passwd")  # still the old folders

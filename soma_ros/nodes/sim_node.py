@@ -51,7 +51,8 @@ from typing import NamedTuple, Optional
 import numpy as np
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, JointState, PointCloud2
 from soma_msgs.msg import SimStatus
@@ -118,9 +119,10 @@ def _one_line(exc: BaseException) -> str:
     return text[:300] or type(exc).__name__
 
 
-def _float_param(node: Node, name: str, default: float, desc: str, lo: float, hi: float) -> float:
+def _float_param(node: Node, name: str, default: float, desc: str, lo: float, hi: float, read_only: bool = False) -> float:
     node.declare_parameter(name, default, ParameterDescriptor(
-        description=desc, floating_point_range=[FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]))
+        description=desc, read_only=read_only,
+        floating_point_range=[FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]))
     return float(node.get_parameter(name).value)
 
 
@@ -168,32 +170,32 @@ class SomaSimNode(Node):
         self.future_tolerance = _float_param(self, "future_stamp_tolerance_s", 0.1,
                                              "joint states stamped further than this ahead of the node clock are "
                                              "rejected (they would make every later message look older), s",
-                                             0.0, 3600.0)
+                                             0.0, 3600.0, read_only=True)
         self.joint_limit_margin = _float_param(self, "joint_limit_margin", 0.05,
                                                "joint states with a position further than this outside the URDF "
-                                               "limits are rejected (rad or m)", 0.0, 1000.0)
+                                               "limits are rejected (rad or m)", 0.0, 1000.0, read_only=True)
         self.input_rate_hz = _float_param(self, "input_rate_hz", 200.0,
                                           "most /joint_states messages taken per second; under a flood the newest "
-                                          "is kept and the others count as dropped, Hz", 1.0, 100000.0)
+                                          "is kept and the others count as dropped, Hz", 1.0, 100000.0, read_only=True)
         p("scene_dirs", [""], ParameterDescriptor(
-            description="folders a reset's ply_path may be read from, symlinks resolved (default: the scene "
+            read_only=True, description="folders a reset's ply_path may be read from, symlinks resolved (default: the scene "
                         "parameter's folder and ~/.ros/soma_scenes)"))
-        p("max_splats", 200000, ParameterDescriptor(description="most splats a reset scene may have (checked from "
+        p("max_splats", 200000, ParameterDescriptor(read_only=True, description="most splats a reset scene may have (checked from "
                                                                 "the file header or the message before reading)"))
         self.max_scene_mb = _float_param(self, "max_scene_file_mb", 256.0, "largest scene file a reset reads, MiB",
-                                         0.001, 1e6)
+                                         0.001, 1e6, read_only=True)
         self.max_scale_ratio = _float_param(self, "max_splat_scale_ratio", 0.05,
                                             "a reset scene's largest splat standard deviation, as a fraction of the "
-                                            "starting scene's diameter", 1e-6, 1e6)
+                                            "starting scene's diameter", 1e-6, 1e6, read_only=True)
         self.max_extent_ratio = _float_param(self, "max_scene_extent_ratio", 10.0,
                                              "a reset scene's largest bounding radius, as a multiple of the starting "
-                                             "scene's", 1e-3, 1e6)
+                                             "scene's", 1e-3, 1e6, read_only=True)
         self.max_scene_offset = _float_param(self, "max_scene_offset_m", 2.0,
                                              "how far a reset scene's centre may lie outside the starting scene's "
-                                             "bounding sphere, m", 0.0, 1e6)
+                                             "bounding sphere, m", 0.0, 1e6, read_only=True)
         self.reset_timeout = _float_param(self, "reset_timeout_s", 10.0,
                                           "a reset not done within this is refused (the running scene is kept), s",
-                                          0.1, 3600.0)
+                                          0.1, 3600.0, read_only=True)
 
         import torch
 
@@ -244,8 +246,10 @@ class SomaSimNode(Node):
         # holds up the executor that takes /joint_states
         self._reset_node = rclpy.create_node(f"{self.get_name()}_reset", namespace=self.get_namespace(),
                                              context=self.context, start_parameter_services=False)
-        self.srv_reset = self._reset_node.create_service(ResetScene, f"{prefix}/reset", self._on_reset)
-        self._reset_executor = SingleThreadedExecutor(context=self.context)
+        # reentrant on two threads: a request that arrives while a reset runs is taken and answered "busy"
+        self.srv_reset = self._reset_node.create_service(ResetScene, f"{prefix}/reset", self._on_reset,
+                                                         callback_group=ReentrantCallbackGroup())
+        self._reset_executor = MultiThreadedExecutor(num_threads=2, context=self.context)
         self._reset_executor.add_node(self._reset_node)
         self._reset_thread = threading.Thread(target=self._spin_reset, name="soma_reset_srv", daemon=True)
         self._reset_mutex = threading.Lock()  # guards _reset_busy
@@ -495,7 +499,21 @@ class SomaSimNode(Node):
             self.get_logger().error(f"tf publish failed: {exc}", throttle_duration_sec=5.0)
 
 
-def main(argv: Optional[list[str]] = None) -> int:
+def main(argv: Optional[list[str]] = None, fast_exit: bool = True) -> int:
+    """Run the node until SIGINT / SIGTERM (see :func:`run`). With ``fast_exit`` (the console
+    entry point) the process then ends at once with ``os._exit``: everything the node owns is
+    closed by then (threads, node, context, log files), and the interpreter's own teardown of
+    torch and the extension modules would otherwise take seconds on a busy machine and hold up
+    the stop. Pass ``fast_exit=False`` to get the exit status back instead."""
+    rc = run(argv)
+    if fast_exit:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(rc)
+    return rc
+
+
+def run(argv: Optional[list[str]] = None) -> int:
     """Spin until SIGINT/SIGTERM; then stop the worker threads while the context is still
     valid (no publish on a dead context), destroy the node and shut down, in that order."""
     import signal

@@ -327,3 +327,30 @@ def test_headers_are_checked_against_the_limit_and_the_file_length_before_readin
     (tmp_path / "n.splat").write_bytes(b"\0" * 64)
     with pytest.raises(PlyError, match="holds 2 splats, more than the limit of 1"):
         read_splat(tmp_path / "n.splat", max_splats=1)
+
+
+def test_soma_scene_info_convert_and_export(tmp_path, capsys):
+    """`soma scene export` writes a bundle's splats in the standard layout (no extras), `convert`
+    moves between .ply degrees and .splat, `info` describes each; bad input is one line."""
+    from soma_ros.cli import main
+    from soma_ros.core.scenes import synthetic_bundle
+
+    bundle = synthetic_bundle(300, width=32, height=24).save(tmp_path / "run" / "scene")
+    assert main(["scene", "export", str(tmp_path / "run"), str(tmp_path / "std.ply"), "--sh-degree", "3"]) == 0
+    props = [ln.split()[2] for ln in _header(tmp_path / "std.ply")[0] if ln.startswith("property")]
+    assert len(props) == 62 and "mass" not in props  # graphdeco's SH-degree-3 record exactly
+    assert main(["scene", "convert", str(tmp_path / "std.ply"), str(tmp_path / "a.splat")]) == 0
+    assert main(["scene", "convert", str(tmp_path / "a.splat"), str(tmp_path / "b.ply")]) == 0
+    capsys.readouterr()
+    assert main(["scene", "info", str(tmp_path / "b.ply")]) == 0
+    out = capsys.readouterr().out
+    assert "300 splats" in out and "SH degree 0" in out and "binary_little_endian" in out
+    assert main(["scene", "info", str(bundle)]) == 0 and "300 splats" in capsys.readouterr().out
+    back = read_ply(tmp_path / "b.ply")
+    assert torch.equal(back.means, read_ply(bundle / "splats.ply").means)
+    assert main(["scene", "convert", str(tmp_path / "std.ply"), str(tmp_path / "c.splat"), "--sh-degree", "3"]) == 1
+    assert "stores SH degree 0" in capsys.readouterr().err
+    (tmp_path / "junk.ply").write_bytes(b"junk")
+    assert main(["scene", "info", str(tmp_path / "junk.ply")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not a PLY file" in err
