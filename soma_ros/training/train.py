@@ -6,7 +6,11 @@
 RUN gets ``checkpoint.pt`` (the simulator, :func:`~soma_ros.core.checkpoint.save_checkpoint`;
 with ``run.keep: best`` the weights with the lowest validation loss so far, the untrained ones
 included, with ``best_points`` those with the lowest validation point distance, else the latest), ``checkpoint_last.pt`` (the latest weights), ``scene/`` (the scene bundle the nodes load, plus ``hierarchy.pt``), ``train_state.pt``
-(optimiser and schedule, for resuming), ``log.csv``, ``loss.png``, ``train_config.yaml``.
+(optimiser and schedule, for resuming), ``log.csv``, ``loss.png``, ``val_tasks.csv`` and
+``val_tasks.png`` (the validation figures per task, :func:`write_val_tasks`), ``train_config.yaml``.
+With ``run.keep: best_score`` the kept weights are those with the lowest :func:`selection_score`
+(image loss, scored-region depth and point distance per validation task, relative to the untrained
+model). Validation episodes are stratified over the training split's tasks (:func:`split_validation`).
 
 One iteration (per rank): pick a training episode, roll the simulator out from
 that episode's initial state (G_0 aligned to its first frame, see
@@ -16,7 +20,8 @@ every predicted state in every camera and compare with the recorded frame:
     L = mean_{frames, cameras} [lam masked-L2 + (1 - lam) D-SSIM](object pixels, robot pixels excluded)
         + w_mom L_mom / M^2 + w_depth masked-L1(depth)
 
-then Adam with the gradient norm clipped. The temporal schedule is the
+then Adam with the gradient norm clipped, in two parameter groups with their own learning rate and
+warm-up (:func:`param_groups`: the network, the physical terms). The temporal schedule is the
 paper's two-stage multi-resolution one: stage 1 steps ``stride`` frames at a
 time (dt_sim = stride x dt) from frame 0 with a rollout that grows every
 epoch; stage 2 runs at the frame rate on random windows whose start state
@@ -81,6 +86,7 @@ __all__ = [
     "make_optimizer",
     "split_validation",
     "selection_score",
+    "write_val_tasks",
     "plan_rollout",
     "contact_frame",
     "rest_reach",
@@ -723,10 +729,10 @@ def validate(sim: Simulator, store: EpisodeStore, names: Sequence[str], cfg: Tra
     acc = np.asarray(dist.all_reduce_sum(acc.ravel().tolist())).reshape(acc.shape)
     sim.train(was)
 
-    def figures(r: np.ndarray) -> dict:
-        n = max(r[4], 1.0)
-        return {**{k: r[j] / n for j, k in enumerate(VAL_FIGURES)},
-                "follow": (r[5] / r[6]) if r[6] else float("nan"), "frames": int(r[4]), "episodes": int(r[7])}
+    def figures(r: np.ndarray) -> dict:  # Python floats: they go into checkpoints loaded with weights_only
+        n = max(float(r[4]), 1.0)
+        return {**{k: float(r[j]) / n for j, k in enumerate(VAL_FIGURES)},
+                "follow": float(r[5] / r[6]) if r[6] else float("nan"), "frames": int(r[4]), "episodes": int(r[7])}
 
     out = figures(acc.sum(axis=0))
     out["per_task"] = {task: figures(acc[j]) for j, task in enumerate(tasks)}
