@@ -25,7 +25,7 @@ def register(s: argparse._SubParsersAction) -> None:
     a.add_argument("--robot", default="panda", help="robot config recorded in the bundle (bag: its wrist camera)")
     a.add_argument("--config", default=None, help="with --bag: train config whose data/scene sections apply")
     a.add_argument("--photometric-iters", type=int, default=None, help="iterations of the photometric refinement "
-                                                                       "(default 40; 0 = geometry only)")
+                                                                       "(default 150; 0 = geometry only)")
     a.add_argument("--trim", type=float, default=None, help="ICP inlier distance in metres (default 0.01)")
     a.add_argument("--dt", type=float, default=1 / 30, help="with --capture: frame interval stored in the bundle (s)")
     a.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -23,7 +23,7 @@ import torch
 from soma_ros.core.cameras import Cameras
 from soma_ros.core.splats import Splats
 
-from .splat_fit import FitConfig, fit_splats  # noqa: F401  (the fit of capture views)
+from soma_ros.scene.splat_fit import FitConfig, fit_splats  # noqa: F401  (the fit of capture views)
 
 
 @dataclass

@@ -16,7 +16,8 @@ scaled. :func:`align_scan` finds ``x_rig = s R x_scan + t`` in three stages:
    Sim(3) correction (rotation vector, translation, log-scale) and a per-channel colour gain
    and offset (the scan's tool and the rig's cameras do not share exposure and white balance)
    fitted for a few dozen iterations to the object pixels of the views (L1 + an alpha term)
-   with the public renderer. The correction is kept only if it lowers the loss.
+   with the public renderer (learning rates decayed tenfold over the iterations). The
+   correction is kept only if it lowers the loss over all views.
 
 The target is the rig's object points: a capture's ``pcd.ply``, its masked depth, or the
 visual hull of its masks; for a bag, the fused masked depth of the first frame(s). The
@@ -49,7 +50,7 @@ class AlignConfig:
     icp_iters: int = 40
     trim_distance: float = 0.01
     max_points: int = 20000
-    photometric_iters: int = 40
+    photometric_iters: int = 150
     lr_rotation: float = 2e-3
     lr_translation: float = 1e-3
     lr_scale: float = 2e-3
@@ -213,12 +214,14 @@ def photometric_refine(splats: Splats, views, cfg: AlignConfig, progress: bool =
     with torch.no_grad():
         before = float(loss_all())
     g = torch.Generator().manual_seed(cfg.seed)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: 0.1 ** (k / max(1, cfg.photometric_iters)))
     for _ in tqdm(range(cfg.photometric_iters), desc="align: photometric", disable=not progress, unit="it"):
         i = int(torch.randint(len(crops), (1,), generator=g))
         loss = loss_all([i])
         opt.zero_grad()
         loss.backward()
         opt.step()
+        sched.step()
     with torch.no_grad():
         after = float(loss_all())
     info = {"loss_before": before, "loss_after": after, "iters": cfg.photometric_iters}
@@ -394,9 +397,12 @@ def align_to_capture(file, capture, out, cfg: Optional[AlignConfig] = None, obje
     scan = load_splats(file)
     scan.validate()
     target, source = capture_target_points(views)
-    geo_cfg = AlignConfig(**{**cfg.__dict__, "photometric_iters": 0})
-    geo = align_scan(scan, target, geo_cfg)
-    res = align_scan(scan, target, cfg, views=views, progress=progress) if cfg.photometric_iters > 0 else geo
+    geo = align_scan(scan, target, cfg)
+    res = geo
+    if cfg.photometric_iters > 0:
+        moved, corr, pinfo = photometric_refine(geo.splats, views, cfg, progress)
+        res = AlignResult(corr @ geo.sim3, moved, {**geo.info, "photometric": pinfo,
+                                                   "residual": residual_mm(moved, target, cfg.trim_distance)})
     _write_bundle(out, res.splats, object_name, robot, views, dt,
                   {"source_scan": str(file), "source_capture": str(capture), "scan_to_sim": res.sim3.to_dict()})
     rows = _report_views(out, res.splats, views, geo.splats if res is not geo else None)

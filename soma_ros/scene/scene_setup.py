@@ -11,8 +11,10 @@ Steps of :func:`setup_scene` (paper Sec. 3 "Scene Initialization via R2S Mapping
    depth has fewer points); isotropic splats of ``splat_scale_factor`` x their
    median nearest-neighbour spacing.
 3. **Photometric refinement** with our renderer on those frames (colours,
-   opacities, scales, orientations; masked L2 + D-SSIM + silhouette, robot pixels
-   ignored) -- :func:`soma_ros.scene.capture.fit_splats`.
+   opacities, scales, orientations; L1 + D-SSIM on object pixels, alpha and depth
+   terms, robot pixels ignored; positions and count fixed; no early stop: at the
+   bags' resolution the held-back pixel blocks cut whole stretches of a thin object
+   out of the loss and measure extrapolation, not the fit) -- :func:`soma_ros.scene.splat_fit.fit_splats`.
 4. **Table plane** by RANSAC (:func:`fit_table_plane`) on non-object, non-robot
    depth within ``table_radius`` of the object; **gravity** = g times the plane
    normal oriented by the paper's sign rule with a fixed camera's view direction
@@ -198,10 +200,13 @@ def setup_scene(ep: EpisodeData, cfg: SceneConfig, object_name: str, robot_confi
         if cfg.photometric_iters > 0:
             views = episode_views(ep, frames)
             # the training cameras are these very cameras: colours are fitted to them too
+            # the fit of `soma reconstruct --capture` with the set-up's constraints: the fused depth
+            # positions and the splat count stay (no densification or pruning: the model's hierarchy
+            # is built on this G_0), SH degree 0, every frame x camera view in each iteration
             fc = FitConfig(iters=cfg.photometric_iters, lr_means=0.0, lr_scales=cfg.photometric_lr_scale,
                            lr_quats=1e-3, lr_opacity=cfg.photometric_lr_opacity, lr_color=cfg.photometric_lr_color,
-                           init_scale=cfg.splat_scale_factor * voxel, views_per_iter=0,
-                           log_every=max(1, cfg.photometric_iters // 5))
+                           sh_degree=0, densify_until=0, min_opacity=0.0, max_scale=1e9, views_per_iter=0,
+                           check_fraction=0.0, log_every=max(1, cfg.photometric_iters // 5))
             fitted = fit_splats(g0, views, fc, progress=progress)
             # keep the fused positions and the mass; scales bounded by 3 x the spacing
             g0 = Splats(means=g0.means, quats=fitted.quats, scales=fitted.scales.clamp(max=3 * voxel),
