@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m benchmarks.bench_live [--splats 13000] [--width 320 --height 240]
+    python -m benchmarks.bench_live [--splats 13000] [--width 320 --height 240] [--cameras 1 3]
                                     [--trials 20] [--sustain-s 20] [--long-steps 10000]
                                     [--flood-s 30] [--flood-hz 1000] [--long-run TRAINED_RUN]
                                     [--only engine latency rates long flood] [--json OUT.json]
@@ -30,13 +30,18 @@ topics. Sections:
              the next render tick, the render, the conversion and the transport.
              Nothing else can change the image, so the measure is causal, not a
              correlation of stamps. Repeated ``--trials`` times.
-``rates``    sustained step rate and image rate for ``--sustain-s`` seconds while
+``rates``    for each camera count of ``--cameras`` (1: ``cam_front``; 3: with two more
+             fixed cameras, ``cam_left`` and ``cam_right``, added to the scene bundle):
+             sustained step rate and image-set rate for ``--sustain-s`` seconds while
              joint states stream at 100 Hz moving the gripper back and forth along
              the rope just above the robot effect's reach (so the rope stays at
              rest and fully in view: the render pays for every splat; a random
              model would throw a touched rope out of view and make rendering
              look cheap), as reported in /soma/status (rates over the node's 1 s
-             window) and as counted here (images received / s, status.step / s).
+             window) and as counted here (image sets received / s -- the slowest
+             camera's count --, status.step / s), and the node's median step and
+             render times (wall and CPU) against the engine's, which the node measures
+             alone at start-up and reports in /soma/status.
              The node's, this process's and the rest of the machine's CPU use are
              reported with every section (the cores may be shared).
 ``long``     a ``--long-steps`` live run at a high ``rate_hz`` with images off while
@@ -411,6 +416,37 @@ def cloud_means(msg) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- the benchmark
+EXTRA_CAMERAS = ("cam_left", "cam_right")
+
+
+def with_cameras(scene_dir: Path, n_cams: int, out_dir: Path) -> tuple[Path, list[str]]:
+    """A copy of the scene bundle with ``n_cams`` fixed cameras: its first fixed camera and up
+    to two more at the same distance from the object's centroid, turned +-50 degrees about the
+    gravity axis (same intrinsics and image size). Returns (bundle folder, camera names)."""
+    from soma_ros.core.cameras import look_at
+    from soma_ros.core.scene_bundle import CameraSpec, SceneBundle
+
+    if not 1 <= n_cams <= 1 + len(EXTRA_CAMERAS):
+        raise ValueError(f"--cameras: 1 to {1 + len(EXTRA_CAMERAS)} cameras, got {n_cams}")
+    b = SceneBundle.load(scene_dir)
+    first = next(c for c in b.cameras if c.cam_to_sim is not None)
+    if n_cams == 1:
+        return Path(scene_dir), [first.name]
+    centre = b.splats.means.detach().double().mean(0).numpy()
+    up = -np.asarray(b.gravity, dtype=np.float64)
+    up /= np.linalg.norm(up)
+    eye = first.cam_to_sim[:3, 3] - centre
+    cams = [first]
+    for name, ang in zip(EXTRA_CAMERAS[: n_cams - 1], (math.radians(50), math.radians(-50))):
+        # Rodrigues rotation of the front camera's offset about the up axis
+        e = (eye * math.cos(ang) + np.cross(up, eye) * math.sin(ang) + up * (up @ eye) * (1 - math.cos(ang)))
+        c2w = look_at(centre + e, centre, up=up, dtype=torch.float64).numpy()
+        cams.append(CameraSpec(name, first.width, first.height, first.K, cam_to_sim=c2w))
+    b.cameras = cams + [c for c in b.cameras if c is not first]
+    b.save(out_dir)
+    return out_dir, [c.name for c in cams]
+
+
 def machine_line(torch_threads: int) -> str:
     from benchmarks.bench_render import _cpu_model
 
@@ -565,11 +601,13 @@ def bench_latency(b: _Bench, scene_dir: str, hover, in_rope, trials: int, say) -
             "step_ms": float(st.step_time_ms), "render_ms": float(st.render_time_ms)}
 
 
-def bench_rates(b: _Bench, sweep: Sequence[np.ndarray], seconds: float, say) -> dict:
-    """Sustained rates while joint states stream at 100 Hz along `sweep` (cycled)."""
+def bench_rates(b: _Bench, sweep: Sequence[np.ndarray], seconds: float, say,
+                cameras: Sequence[str] = ("cam_front",)) -> dict:
+    """Sustained rates while joint states stream at 100 Hz along `sweep` (cycled); image sets
+    are counted by the camera with the fewest images."""
     p = b.probe
     p.hold(sweep[0], lambda: False, 2.0)  # warm-up
-    n_img0 = p.count.get(("image", "cam_front"), 0)
+    n_img0 = {c: p.count.get(("image", c), 0) for c in cameras}
     img_first = _rgb(p.last("image", "cam_front")).copy() if p.last("image", "cam_front") is not None else None
     st0, t0 = p.last_status(), time.monotonic()
     k0 = len(p.status)
@@ -584,13 +622,17 @@ def bench_rates(b: _Bench, sweep: Sequence[np.ndarray], seconds: float, say) -> 
     t1 = time.monotonic()
     st1 = p.last_status()
     window = [m for _, m in list(p.status)[k0:]]
+    # a status without the engine's figures is not this node's (the node sets them at start-up)
+    dropped = sum(1 for m in window if not m.engine_step_ms > 0)
+    window = [m for m in window if m.engine_step_ms > 0]
     res = {
         "cpu": cpu.stop(),
         "rope_in_view_at_rest": bool(p.last("image", "cam_front") is not None and img_first is not None
                                      and np.array_equal(_rgb(p.last("image", "cam_front")), img_first)),
         "seconds": t1 - t0,
         "steps_per_s": (int(st1.step) - int(st0.step)) / (t1 - t0) if st1.step >= st0.step else float("nan"),
-        "images_per_s": (p.count.get(("image", "cam_front"), 0) - n_img0) / (t1 - t0),
+        "cameras": list(cameras),
+        "images_per_s": min(p.count.get(("image", c), 0) - n_img0[c] for c in cameras) / (t1 - t0),
         "status_step_rate_median": _pct([m.step_rate_hz for m in window], 50),
         "status_step_rate_min": min((m.step_rate_hz for m in window), default=float("nan")),
         "status_image_rate_median": _pct([m.image_rate_hz for m in window], 50),
@@ -598,12 +640,22 @@ def bench_rates(b: _Bench, sweep: Sequence[np.ndarray], seconds: float, say) -> 
         "step_ms_median": _pct([m.step_time_ms for m in window], 50),
         "step_ms_p90": _pct([m.step_time_ms for m in window], 90),
         "render_ms_median": _pct([m.render_time_ms for m in window], 50),
+        "step_cpu_ms_median": _pct([m.step_cpu_ms for m in window], 50),
+        "render_cpu_ms_median": _pct([m.render_cpu_ms for m in window], 50),
+        "engine_step_ms": float(window[-1].engine_step_ms) if window else float("nan"),
+        "engine_render_ms": float(window[-1].engine_render_ms) if window else float("nan"),
         "lag_ms_median": _pct([m.joint_state_lag_ms for m in window], 50),
         "joint_states_sent": i,
     }
-    say(f"  {res['steps_per_s']:.1f} steps/s, {res['images_per_s']:.1f} images/s received "
+    res["status_without_engine_figures"] = dropped
+    res["step_vs_engine"] = res["step_ms_median"] / res["engine_step_ms"] if window else float("nan")
+    res["render_vs_engine"] = res["render_ms_median"] / res["engine_render_ms"] if window else float("nan")
+    say(f"  {len(cameras)} camera(s): {res['steps_per_s']:.1f} steps/s, {res['images_per_s']:.1f} image sets/s received "
         f"(status medians {res['status_step_rate_median']:.1f} / {res['status_image_rate_median']:.1f} Hz); "
-        + _cpu_text(res["cpu"]))
+        f"step {res['step_ms_median']:.1f} ms in the node ({res['step_cpu_ms_median']:.1f} CPU) vs "
+        f"{res['engine_step_ms']:.1f} alone ({res['step_vs_engine']:.2f}x), render {res['render_ms_median']:.1f} ms "
+        f"({res['render_cpu_ms_median']:.1f} CPU) vs {res['engine_render_ms']:.1f} alone "
+        f"({res['render_vs_engine']:.2f}x); " + _cpu_text(res["cpu"]) + "; " + load_line())
     return res
 
 
@@ -740,6 +792,9 @@ def bench_flood(b: _Bench, hover, seconds: float, hz: float, say) -> dict:
     imgs = p.count.get(("image", "cam_front"), 0) - n_img0
     st_end = p.last_status()
     window = [m for _, m in list(p.status)[k0:]]
+    # a status without the engine's figures is not this node's (the node sets them at start-up)
+    dropped = sum(1 for m in window if not m.engine_step_ms > 0)
+    window = [m for m in window if m.engine_step_ms > 0]
     p.hold(hover, lambda: False, 3.0)
     st1 = p.last_status()
     rss1 = rss_mb(pid)
@@ -767,6 +822,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--splats", type=int, default=13000)
     ap.add_argument("--width", type=int, default=320)
     ap.add_argument("--height", type=int, default=240)
+    ap.add_argument("--cameras", type=int, nargs="+", default=[1, 3],
+                    help="camera counts for the engine and rates sections (1 to 3 fixed cameras)")
     ap.add_argument("--model", default="cpu")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--torch-threads", type=int, default=1)
@@ -846,26 +903,38 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if reach <= radius:
             raise RuntimeError(f"the rate sweep comes within {reach:.3f} m of the object (reach {radius} m)")
         sweep = sweep_a + sweep_a[::-1]
-        if "engine" in args.only:
-            say("engine: the node's work without ROS, in this process")
-            e = bench_engine(live, hover, sweep, say)
-            e["cores_needed"] = (args.rate_hz * e["step_cpu_ms"] + args.render_rate_hz * e["render_cpu_ms"]
-                                 + 5.0 * e["cloud_cpu_ms"]) / 1e3
-            results["engine"] = e
-            say(f"  cores needed at {args.rate_hz:.0f} Hz steps, {args.render_rate_hz:.0f} Hz images, 5 Hz clouds: "
-                f"{e['cores_needed']:.2f} (plus ROS overhead)")
-        if {"latency", "rates", "flood"} & set(args.only):
+        for n_cams in args.cameras if {"engine", "rates"} & set(args.only) else []:
+            scene_n, cam_names = with_cameras(Path(run[1]), n_cams, work / f"scene_{n_cams}cam")
+            run_n = (run[0], scene_n)
+            if "engine" in args.only:
+                say(f"engine, {n_cams} camera(s) {', '.join(cam_names)}: the node's work without ROS, in this process")
+                live_n = load_live(str(run_n[0]), str(run_n[1]), camera_names=cam_names)
+                e = bench_engine(live_n, hover, sweep, say)
+                e["cores_needed"] = (args.rate_hz * e["step_cpu_ms"] + args.render_rate_hz * e["render_cpu_ms"]
+                                     + 5.0 * e["cloud_cpu_ms"]) / 1e3
+                e["cameras"] = cam_names
+                results.setdefault("engine", {})[str(n_cams)] = e
+                say(f"  cores needed at {args.rate_hz:.0f} Hz steps, {args.render_rate_hz:.0f} Hz image sets, 5 Hz "
+                    f"clouds: {e['cores_needed']:.2f} (plus ROS overhead); {load_line()}")
+                del live_n
+            if "rates" in args.only:
+                say(f"rates, {n_cams} camera(s): {args.sustain_s:.0f} s, joint states at 100 Hz sweeping along the "
+                    f"rope just out of reach")
+                params = base[:-1] + [f"cameras:=[{','.join(cam_names)}]"]
+                b = _Bench(run_n, params, names, cam_names, splats=False)
+                try:
+                    b.started(hover, ("image", cam_names[-1]))
+                    b.probe.reset(ply_path=str(run_n[1]), initial_joint_state=b.probe.joint_msg(sweep[0]))
+                    results.setdefault("rates", {})[str(n_cams)] = bench_rates(b, sweep, args.sustain_s, say, cam_names)
+                finally:
+                    b.close()
+        if {"latency", "flood"} & set(args.only):
             b = _Bench(run, base, names, ["cam_front"], splats=False)
             try:
                 b.started(hover, ("image", "cam_front"))
                 if "latency" in args.only:
                     say(f"latency: {args.trials} trials (gripper from just out of reach into the rope by one message)")
                     results["latency"] = bench_latency(b, str(run[1]), hover, in_rope, args.trials, say)
-                if "rates" in args.only:
-                    say(f"rates: {args.sustain_s:.0f} s, joint states at 100 Hz sweeping along the rope just out of reach")
-                    # the reset carries the start pose: the last trial's pose must not touch the rope again
-                    b.probe.reset(ply_path=str(run[1]), initial_joint_state=b.probe.joint_msg(sweep[0]))
-                    results["rates"] = bench_rates(b, sweep, args.sustain_s, say)
                 if "flood" in args.only:
                     say(f"flood: {args.flood_hz:.0f} Hz for {args.flood_s:.0f} s (1 in 10 with a NaN)")
                     b.probe.reset(ply_path=str(run[1]), initial_joint_state=b.probe.joint_msg(hover))
@@ -911,33 +980,33 @@ def format_report(r: dict) -> str:
     a = r["args"]
     lines = [f"soma_sim_node benchmark -- {r['machine']}"]
     if {"latency", "rates", "flood"} & set(r):
-        lines.append(f"scene: {a['splats']} splats, {a['model']} model (untrained), one camera {a['width']}x{a['height']}, "
+        lines.append(f"scene: {a['splats']} splats, {a['model']} model (untrained), cameras {a['width']}x{a['height']}, "
                      f"rate_hz {a['rate_hz']:.0f}, render_rate_hz {a['render_rate_hz']:.0f}, splat_rate_hz 5, "
                      f"device {a['device']}")
     lines += [f"{r.get('load_before', '')} before, {r.get('load_after', '')} after ({r.get('seconds', 0):.0f} s)", ""]
     row = "{:<44} {:>14} {:>12}"
     lines.append(row.format("measure", "value", "target"))
-    if "engine" in r:
-        E = r["engine"]
-        lines.append(row.format("engine step, CPU (wall) per step", f"{E['step_cpu_ms']:.1f} ({E['step_wall_ms']:.1f}) ms", "<= 33 ms"))
-        lines.append(row.format("engine render, CPU (wall) per image", f"{E['render_cpu_ms']:.0f} ({E['render_wall_ms']:.0f}) ms", ""))
-        lines.append(row.format("engine splat cloud, CPU (wall)", f"{E['cloud_cpu_ms']:.1f} ({E['cloud_wall_ms']:.1f}) ms", ""))
+    for n, E in r.get("engine", {}).items():
+        lines.append(row.format(f"engine ({n} camera(s)) step, CPU (wall)", f"{E['step_cpu_ms']:.1f} ({E['step_wall_ms']:.1f}) ms", "<= 33 ms"))
+        lines.append(row.format("  render of all cameras, CPU (wall)", f"{E['render_cpu_ms']:.0f} ({E['render_wall_ms']:.0f}) ms", ""))
+        lines.append(row.format("  splat cloud, CPU (wall)", f"{E['cloud_cpu_ms']:.1f} ({E['cloud_wall_ms']:.1f}) ms", ""))
         lines.append(row.format("  cores the node needs at the target rates", f"{E['cores_needed']:.2f}", "+ ROS"))
     if "latency" in r:
         L = r["latency"]
         lines.append(row.format(f"joint state -> changed image, median ({L['trials']} trials)", f"{L['median_ms']:.0f} ms", ""))
         lines.append(row.format("  p90 / min / max", f"{L['p90_ms']:.0f}/{L['min_ms']:.0f}/{L['max_ms']:.0f} ms", ""))
         lines.append(row.format("  node step / render time (last status)", f"{L['step_ms']:.1f}/{L['render_ms']:.0f} ms", ""))
-    if "rates" in r:
-        R = r["rates"]
-        lines.append(row.format("sustained step rate (status.step / wall s)", f"{R['steps_per_s']:.1f} Hz",
-                                f"30 Hz ({R['steps_per_s'] / 30:.2f}x)"))
+    for n, R in r.get("rates", {}).items():
+        lines.append(row.format(f"{n} camera(s): sustained step rate (status.step/s)", f"{R['steps_per_s']:.1f} Hz",
+                                f">= 29 Hz ({R['steps_per_s'] / 30:.2f}x of 30)"))
         lines.append(row.format("  status step_rate_hz median / min", f"{R['status_step_rate_median']:.1f}/{R['status_step_rate_min']:.1f}", ""))
-        lines.append(row.format("sustained image rate (received / s)", f"{R['images_per_s']:.1f} Hz",
-                                f">= 8 Hz ({R['images_per_s'] / 8:.2f}x)"))
+        lines.append(row.format("  sustained image-set rate (received / s)", f"{R['images_per_s']:.1f} Hz", ">= 10 Hz"))
         lines.append(row.format("  status image_rate_hz median / min", f"{R['status_image_rate_median']:.1f}/{R['status_image_rate_min']:.1f}", ""))
-        lines.append(row.format("  step time median / p90", f"{R['step_ms_median']:.1f}/{R['step_ms_p90']:.1f} ms", "<= 33 ms"))
-        lines.append(row.format("  render time median", f"{R['render_ms_median']:.0f} ms", ""))
+        lines.append(row.format("  step in the node median / p90 (CPU)", f"{R['step_ms_median']:.1f}/{R['step_ms_p90']:.1f} ({R['step_cpu_ms_median']:.1f}) ms", "<= 33 ms"))
+        lines.append(row.format("  step alone (engine, node start-up)", f"{R['engine_step_ms']:.1f} ms",
+                                f"node {R['step_vs_engine']:.2f}x (<= 1.3x)"))
+        lines.append(row.format("  render in the node median (CPU)", f"{R['render_ms_median']:.0f} ({R['render_cpu_ms_median']:.0f}) ms", ""))
+        lines.append(row.format("  render alone (engine, node start-up)", f"{R['engine_render_ms']:.0f} ms", f"node {R['render_vs_engine']:.2f}x"))
         lines.append(row.format("  rope at rest in view throughout (same image)", str(R.get("rope_in_view_at_rest")), "True"))
         lines.append(row.format("  cores used: node / probe / others", "{:.2f}/{:.2f}/{:.2f}".format(
             R["cpu"]["node_cores"], R["cpu"]["probe_cores"], R["cpu"]["others_cores"]), f"of {R['cpu']['cores']}"))

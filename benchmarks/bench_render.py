@@ -6,9 +6,11 @@ spacing (the sheet is fully covered, as a trained reconstruction is), thin
 along the normal, opacities in [0.5, 1]. Worst case for the rasterizer is
 dense coverage, which this is.
 
-Usage: ``python -m benchmarks.bench_render [--device cpu] [--repeats 5]``
-prints a table naming the machine; :func:`bench_render` returns the rows
-(used by ``soma bench core``).
+Usage: ``python -m benchmarks.bench_render [--device cpu] [--repeats 5] [--raster both]``
+prints a table naming the machine and the load average; with ``--raster both``
+(the default on CPU) the pure-torch reference and the compiled kernels are timed
+on the same scenes and their ratios printed. :func:`bench_render` returns the
+rows (used by ``soma bench core``).
 """
 
 from __future__ import annotations
@@ -114,7 +116,9 @@ def bench_render(
     """Time the renderer on :func:`make_bench_scene`; one row per (resolution, n).
 
     Each row: n_splats, width, height, device, backend, fwd_ms / fwdbwd_ms
-    (median over ``repeats``, plus min), coverage (mean alpha), n_isect,
+    (median wall time over ``repeats``, plus min), fwd_cpu_ms / fwdbwd_cpu_ms
+    (median process CPU time: the figure that holds on a shared machine), coverage
+    (mean alpha), n_isect,
     peak_rss_mb (process VmHWM reset before the row; whole-process figure).
     """
     cfg = cfg or RenderConfig()
@@ -123,36 +127,39 @@ def bench_render(
         for n in n_splats_list:
             means, scales, quats, colors, opac, cams = make_bench_scene(n, w, h, device)
             _reset_peak_rss()
-            fwd, fb = [], []
+            fwd, fb, fwd_cpu, fb_cpu = [], [], [], []
             out = None
             for i in range(warmup + repeats):
                 _sync(device)
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 with torch.no_grad():
                     covs = covariance_from_scale_rot(scales, quats)
                     out = render(means, covs, colors, opac, cams, cfg=cfg)
                 _sync(device)
-                t1 = time.perf_counter()
+                t1, c1 = time.perf_counter(), time.process_time()
                 m = means.clone().requires_grad_(True)
                 s = scales.clone().requires_grad_(True)
                 c = colors.clone().requires_grad_(True)
                 o = opac.clone().requires_grad_(True)
                 _sync(device)
-                t2 = time.perf_counter()
+                t2, c2 = time.perf_counter(), time.process_time()
                 o2 = render(m, covariance_from_scale_rot(s, quats), c, o, cams, cfg=cfg)
                 loss = o2.rgb.square().sum() + o2.depth.sum()
                 loss.backward()
                 _sync(device)
-                t3 = time.perf_counter()
+                t3, c3 = time.perf_counter(), time.process_time()
                 if i >= warmup:
                     fwd.append((t1 - t0) * 1e3)
                     fb.append((t3 - t2) * 1e3)
-            fwd.sort()
-            fb.sort()
+                    fwd_cpu.append((c1 - c0) * 1e3)
+                    fb_cpu.append((c3 - c2) * 1e3)
+            for xs in (fwd, fb, fwd_cpu, fb_cpu):
+                xs.sort()
             rows.append(dict(
                 n_splats=n, width=w, height=h, device=str(device), backend=out.backend,
                 fwd_ms=fwd[len(fwd) // 2], fwd_min_ms=fwd[0],
                 fwdbwd_ms=fb[len(fb) // 2], fwdbwd_min_ms=fb[0],
+                fwd_cpu_ms=fwd_cpu[len(fwd_cpu) // 2], fwdbwd_cpu_ms=fb_cpu[len(fb_cpu) // 2],
                 coverage=float(out.alpha.mean()), n_isect=int(out.n_isect),
                 peak_rss_mb=_peak_rss_mb(),
             ))
@@ -160,14 +167,14 @@ def bench_render(
 
 
 def format_table(rows: list[dict]) -> str:
-    hdr = (f"{'res':>9} {'splats':>7} {'fwd ms':>8} {'(min)':>7} {'fwd+bwd ms':>11} {'(min)':>7} "
-           f"{'cover':>6} {'isect':>7} {'RSS MB':>7}")
+    hdr = (f"{'res':>9} {'splats':>7} {'fwd ms':>8} {'(min)':>7} {'(CPU)':>7} {'fwd+bwd ms':>11} {'(min)':>7} "
+           f"{'(CPU)':>7} {'cover':>6} {'isect':>7} {'RSS MB':>7}")
     lines = [hdr]
     for r in rows:
         lines.append(
             f"{r['width']:>4}x{r['height']:<4} {r['n_splats']:>7} {r['fwd_ms']:>8.1f} {r['fwd_min_ms']:>7.1f} "
-            f"{r['fwdbwd_ms']:>11.1f} {r['fwdbwd_min_ms']:>7.1f} {r['coverage']:>6.2f} {r['n_isect']:>7} "
-            f"{r['peak_rss_mb']:>7.0f}"
+            f"{r['fwd_cpu_ms']:>7.1f} {r['fwdbwd_ms']:>11.1f} {r['fwdbwd_min_ms']:>7.1f} {r['fwdbwd_cpu_ms']:>7.1f} "
+            f"{r['coverage']:>6.2f} {r['n_isect']:>7} {r['peak_rss_mb']:>7.0f}"
         )
     return "\n".join(lines)
 
@@ -179,18 +186,37 @@ def main(argv=None) -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (CPU)")
     ap.add_argument("--tile", type=int, default=RenderConfig.tile_size)
     ap.add_argument("--splats", type=int, nargs="+", default=[1000, 4000, 13000])
+    ap.add_argument("--raster", default="both", choices=["both", "auto", "torch", "compiled"],
+                    help="CPU compositor (RenderConfig.raster); 'both' times torch and compiled and prints ratios")
     ap.add_argument("--json", dest="json_path", default=None, help="also write the rows to this JSON file")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     print(machine_description(args.device))
-    rows = bench_render(n_splats_list=args.splats, device=args.device, repeats=args.repeats,
-                        cfg=RenderConfig(tile_size=args.tile))
-    print(f"renderer backend {rows[0]['backend']}, tile {args.tile}, median of {args.repeats}")
-    print(format_table(rows))
+    l1, l5, _ = os.getloadavg()
+    print(f"load average {l1:.2f} {l5:.2f} on {os.cpu_count()} cores (before)")
+    rasters = ["torch", "compiled"] if args.raster == "both" else [args.raster]
+    if not str(args.device).startswith("cpu"):
+        rasters = ["auto"]
+    tables = {}
+    for raster in rasters:
+        rows = bench_render(n_splats_list=args.splats, device=args.device, repeats=args.repeats,
+                            cfg=RenderConfig(tile_size=args.tile, raster=raster))
+        tables[raster] = rows
+        print(f"renderer backend {rows[0]['backend']} (raster {raster}), tile {args.tile}, median of {args.repeats}")
+        print(format_table(rows))
+    if len(tables) == 2:
+        print("speed-up of compiled over torch (median wall times; CPU times in brackets)")
+        print(f"{'res':>9} {'splats':>7} {'fwd':>7} {'fwd+bwd':>8}")
+        for a, b in zip(tables["torch"], tables["compiled"]):
+            print(f"{a['width']:>4}x{a['height']:<4} {a['n_splats']:>7} {a['fwd_ms'] / b['fwd_ms']:>6.1f}x "
+                  f"{a['fwdbwd_ms'] / b['fwdbwd_ms']:>7.1f}x   (CPU time: {a['fwd_cpu_ms'] / b['fwd_cpu_ms']:.1f}x, "
+                  f"{a['fwdbwd_cpu_ms'] / b['fwdbwd_cpu_ms']:.1f}x)")
+    l1, l5, _ = os.getloadavg()
+    print(f"load average {l1:.2f} {l5:.2f} on {os.cpu_count()} cores (after)")
     if args.json_path:
         with open(args.json_path, "w") as f:
             json.dump(dict(machine=machine_description(args.device), tile=args.tile, repeats=args.repeats,
-                           rows=rows), f, indent=1)
+                           rows=tables), f, indent=1)
         print(f"wrote {args.json_path}")
 
 

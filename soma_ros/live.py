@@ -192,6 +192,8 @@ def joint_limits(robot: RobotModel, names: Sequence[str]) -> dict[str, tuple[flo
 
 @dataclass
 class StepTiming:
+    """Wall times in milliseconds of one physics step and of one render of all cameras."""
+
     step_ms: float = 0.0
     render_ms: float = 0.0
 
@@ -267,6 +269,7 @@ class LiveSimulator:
         self.template: Splats = bundle.splats
         self.state: Optional[SimState] = None
         self.steps = 0
+        self.last_step_cpu_ms = 0.0  # CPU time of the calling thread in the last step
         self.reset(bundle.splats)
 
     # ------------------------------------------------------------------ scene
@@ -360,8 +363,12 @@ class LiveSimulator:
 
     # ------------------------------------------------------------------ step
     def step(self, joint_vec: Optional[np.ndarray]) -> tuple[SimState, float]:
-        """One physics step from the current state; returns (new state, wall ms)."""
+        """One physics step from the current state; returns (new state, wall ms).
+
+        The calling thread's CPU time for the step is left in ``last_step_cpu_ms``: wall
+        minus CPU is time spent waiting (for the GIL or a core) rather than working."""
         t0 = time.perf_counter()
+        c0 = time.thread_time()
         act = self.action(joint_vec) if joint_vec is not None else None
         with self._sim_lock:
             state = self.state
@@ -381,7 +388,45 @@ class LiveSimulator:
             with self._lock:
                 self.state = new
                 self.steps += 1
+        self.last_step_cpu_ms = (time.thread_time() - c0) * 1e3
         return new, (time.perf_counter() - t0) * 1e3
+
+    def neutral_joint_vec(self) -> np.ndarray:
+        """A valid joint vector (``required_joints`` order): the middle of each joint's limits, 0 if unbounded."""
+        lo, hi = (t.double().cpu() for t in self.robot.joint_limits())
+        mid = torch.where(torch.isfinite(lo) & torch.isfinite(hi), 0.5 * (lo + hi), torch.zeros_like(lo))
+        vals = dict(zip(self.robot.joint_names, mid.tolist()))
+        return np.array([vals.get(n, 0.0) for n in self.required_joints], dtype=np.float64)
+
+    def calibrate(self, steps: int = 12, renders: int = 3) -> StepTiming:
+        """The engine's own figures: median wall time of a step and of a render of all cameras,
+        measured here with nothing else of the node running. The steps start from the initial
+        scene with the robot at :meth:`neutral_joint_vec`; the running state, step count and
+        settling counters are restored afterwards (nothing is published)."""
+        if steps < 1 or renders < 1:
+            raise ValueError(f"calibrate needs steps >= 1 and renders >= 1, got {steps}, {renders}")
+        with self._lock:
+            saved = (self.state, self.steps, self.settles, self._quiet_steps)
+        vec = self.neutral_joint_vec()
+        step_ms, render_ms = [], []
+        try:
+            for _ in range(steps + 1):  # the first one warms up
+                try:
+                    _, ms = self.step(vec)
+                except (SimulationDiverged, FloatingPointError):
+                    with self._lock:
+                        self.state = saved[0]
+                    _, ms = self.step(None)
+                step_ms.append(ms)
+            state, template, _ = self.snapshot()
+            for _ in range(renders + 1):
+                t0 = time.perf_counter()
+                self.render(state, template, vec)
+                render_ms.append((time.perf_counter() - t0) * 1e3)
+        finally:
+            with self._lock:
+                self.state, self.steps, self.settles, self._quiet_steps = saved
+        return StepTiming(step_ms=float(np.median(step_ms[1:])), render_ms=float(np.median(render_ms[1:])))
 
     def _settle(self, new: SimState, act: Optional[RobotAction]) -> SimState:
         """Count quiet steps (robot out of reach, every splat slower than ``settle_speed``);

@@ -111,6 +111,12 @@ class RateMeter:
         return (len(self.t) - 1) / span if span > 0 else 0.0
 
 
+def _renderer_name() -> str:
+    from ..core import raster_kernel
+
+    return "compiled CPU kernels" if raster_kernel.available() else "pure-torch reference"
+
+
 def _one_line(exc: BaseException) -> str:
     """An exception as one line of at most 300 characters (its type when it has no message)."""
     text = " ".join(str(exc).split())
@@ -233,6 +239,13 @@ class SomaSimNode(Node):
             f"{', '.join(c.name for c in self.live.cameras)}, joints {', '.join(self.live.required_joints)}")
         self.get_logger().info(f"passive-object rule: {self.live.sim.config.dynamics.passive_rule_text()}")
         self.get_logger().info(f"reset reads scene files only inside: {', '.join(map(str, self.scene_policy.dirs))}")
+        # the engine's own step and render times, reported in /soma/status beside the in-node ones
+        self.engine = self.live.calibrate()
+        self.get_logger().info(
+            f"engine alone: step {self.engine.step_ms:.1f} ms, render {self.engine.render_ms:.1f} ms "
+            f"({len(self.live.cameras)} camera(s) {self.live.cameras[0].width}x{self.live.cameras[0].height}"
+            f"{f' x {self.render_scale:g}' if self.render_scale != 1.0 else ''}, renderer "
+            f"{_renderer_name()}, torch threads {torch.get_num_threads()})")
 
         self.pub_splats = self.create_publisher(PointCloud2, f"{prefix}/splats", SENSOR_OUT_QOS)
         self.pub_status = self.create_publisher(SimStatus, f"{prefix}/status", STATUS_QOS)
@@ -259,7 +272,9 @@ class SomaSimNode(Node):
 
         self.robot_tf = RobotTf(self, self.live, self.world_frame, self.sim_frame, bool(gp("publish_robot_tf")))
         self._step_ms = 0.0
+        self._step_cpu_ms = 0.0
         self._render_ms = 0.0
+        self._render_cpu_ms = 0.0
         self._lag_ms = 0.0
         self._step_rate = RateMeter()
         self._image_rate = RateMeter()
@@ -436,6 +451,7 @@ class SomaSimNode(Node):
             return
         self._set_frame(vec, now)
         self._step_ms = ms
+        self._step_cpu_ms = self.live.last_step_cpu_ms
         self._step_rate.tick()
         self._publish_status("running" if vec is not None else "waiting_for_joint_states")
 
@@ -448,6 +464,10 @@ class SomaSimNode(Node):
         st.num_splats = len(self.live.template)
         st.step_time_ms = float(self._step_ms)
         st.render_time_ms = float(self._render_ms)
+        st.step_cpu_ms = float(self._step_cpu_ms)
+        st.render_cpu_ms = float(self._render_cpu_ms)
+        st.engine_step_ms = float(self.engine.step_ms)
+        st.engine_render_ms = float(self.engine.render_ms)
         st.joint_state_lag_ms = float(self._lag_ms)
         st.step_rate_hz = float(self._step_rate.rate())
         st.image_rate_hz = float(self._image_rate.rate())
@@ -469,9 +489,10 @@ class SomaSimNode(Node):
         frame = self._frame  # one step's state, joint state and stamp, taken as a unit
         if frame.joint_vec is None and any(c.mount_link for c in self.live.cameras):
             return  # mounted cameras need a joint state
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         out, cams = self.live.render(frame.state, frame.template, frame.joint_vec)
         self._render_ms = (time.perf_counter() - t0) * 1e3
+        self._render_cpu_ms = (time.thread_time() - c0) * 1e3
         stamp = stamp_from_ns(frame.stamp_ns)
         rgb = (out.rgb.clamp(0, 1) * 255).round().to(dtype=__import__("torch").uint8).cpu().numpy()
         depth = out.depth.cpu().numpy()

@@ -162,6 +162,10 @@ def test_images_splats_camera_info_status_and_tf(ros_env, untrained_run, probe, 
         # ---- status
         assert st.state == "running" and st.num_splats == 2000 and st.header.frame_id == "soma_sim"
         assert st.step > 0 and st.step_time_ms > 0 and st.render_time_ms > 0
+        # in-node CPU times and the engine's own times (measured alone at start-up)
+        assert st.engine_step_ms > 0 and st.engine_render_ms > 0
+        seen = [m for _, m in probe.status]
+        assert max(m.step_cpu_ms for m in seen) > 0 and max(m.render_cpu_ms for m in seen) > 0
         assert st.step_rate_hz > 0 and st.image_rate_hz > 0
         assert st.joint_states_received > 0 and st.joint_states_rejected == 0
         s0 = st.step

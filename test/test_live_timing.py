@@ -1,0 +1,56 @@
+"""The live engine's own timing figures: per-step CPU time and the start-up calibration
+that /soma/status reports beside the in-node times; the bench's extra fixed cameras."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from soma_ros.live import LiveSimulator, load_live
+
+
+@pytest.fixture(scope="module")
+def live(untrained_run) -> LiveSimulator:
+    return load_live(str(untrained_run[0]), str(untrained_run[1]))
+
+
+def test_step_reports_thread_cpu_time(live):
+    live.reset(live.bundle.splats)
+    _, wall_ms = live.step(live.neutral_joint_vec())
+    assert 0 < live.last_step_cpu_ms <= wall_ms * 1.05 + 0.5
+
+
+def test_calibrate_measures_alone_and_leaves_the_running_state(live):
+    live.reset(live.bundle.splats)
+    vec = live.neutral_joint_vec()
+    assert vec.shape == (len(live.required_joints),) and np.isfinite(vec).all()
+    for _ in range(3):
+        live.step(None)
+    state, template, steps = live.snapshot()
+    before = state.means.clone()
+    t = live.calibrate(steps=3, renders=2)
+    assert t.step_ms > 0 and t.render_ms > 0
+    state2, template2, steps2 = live.snapshot()
+    assert state2 is state and template2 is template and steps2 == steps == 3
+    assert torch.equal(state2.means, before)
+    with pytest.raises(ValueError, match="steps >= 1"):
+        live.calibrate(steps=0)
+
+
+def test_bench_adds_fixed_cameras_looking_at_the_object(untrained_run, tmp_path):
+    from benchmarks.bench_live import with_cameras
+    from soma_ros.core.scene_bundle import SceneBundle
+
+    folder, names = with_cameras(untrained_run[1], 3, tmp_path / "scene3")
+    assert names == ["cam_front", "cam_left", "cam_right"]
+    three = load_live(str(untrained_run[0]), str(folder), camera_names=names)
+    state, template, _ = three.snapshot()
+    out, cams = three.render(state, template, None)
+    assert out.rgb.shape[0] == 3
+    cover = out.alpha.flatten(1).gt(0.5).float().mean(1)
+    assert (cover > 0.005).all(), cover  # the rope is in every view
+    assert not torch.equal(out.rgb[1], out.rgb[2])  # from different sides
+    assert len(SceneBundle.load(folder).cameras) == 4  # the wrist camera is kept
+    same, one = with_cameras(untrained_run[1], 1, tmp_path / "scene1")
+    assert str(same) == str(untrained_run[1]) and one == ["cam_front"]
