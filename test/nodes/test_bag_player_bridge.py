@@ -127,7 +127,7 @@ def test_conversion_passes_rclpy_field_checks():
     script = textwrap.dedent(
         """
         import sys
-        sys.path.insert(0, 'test')
+        sys.path.insert(0, 'test/nodes')
         from test_bag_player_bridge import SAMPLES
         from soma_ros.nodes.rosbags_bridge import to_rclpy
         for name, m in SAMPLES.items():
