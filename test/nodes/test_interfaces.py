@@ -107,7 +107,7 @@ def test_reset_service_across_two_processes(ros_env, untrained_run):
         assert refused.returncode == 1, refused.stdout + refused.stderr
         # Refused, with a message, and the old scene (13,000 splats) keeps running.
         assert "success=False num_splats=13000" in refused.stdout
-        assert "neither splats nor ply_path" in refused.stdout
+        assert "neither splats (0 points) nor a ply_path" in refused.stdout
         assert server.alive(), server.output()
 
 
@@ -138,7 +138,7 @@ def test_soma_msgs_in_a_bag_without_ros(tmp_path):
             for i in range(3):
                 st = Status(header=Header(stamp=Time(sec=i, nanosec=0), frame_id="soma_sim"), state="running",
                             step=i, num_splats=1234, step_time_ms=1.5, render_time_ms=2.5, joint_state_lag_ms=0.0,
-                            step_rate_hz=30.0, image_rate_hz=10.0, joint_states_received=i, joint_states_rejected=0,
+                            step_rate_hz=30.0, image_rate_hz=10.0, joint_states_received=i, joint_states_rejected=0, joint_states_dropped=0,
                             failure_restarts=0, settles=0)
                 w.write(c1, i * 10**9, ts.serialize_cdr(st, Status.__msgtype__))
             w.write(c2, 5, ts.serialize_cdr(_rosbags_cloud(splats), "sensor_msgs/msg/PointCloud2"))
