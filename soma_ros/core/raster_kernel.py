@@ -39,6 +39,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 from pathlib import Path
 from typing import Optional
 
@@ -82,9 +83,15 @@ def _cache_dir() -> Path:
     return Path(base) / "soma_ros" / "kernels"
 
 
+def _compiler_env() -> dict:
+    """The environment for the compiler: this one without LD_PRELOAD (meant for Python, not g++)."""
+    return {k: v for k, v in os.environ.items() if k != "LD_PRELOAD"}
+
+
 def _compiler_version(cxx: str) -> str:
     try:
-        return subprocess.run([cxx, "--version"], capture_output=True, text=True, timeout=30).stdout
+        return subprocess.run([cxx, "--version"], capture_output=True, text=True, timeout=30,
+                              env=_compiler_env()).stdout
     except (OSError, subprocess.SubprocessError):
         return ""
 
@@ -116,10 +123,12 @@ def build(force: bool = False) -> Path:
     fd, tmp = tempfile.mkstemp(prefix=out.stem + ".", suffix=".tmp", dir=out.parent)
     os.close(fd)
     try:
+        env = _compiler_env()
         res = subprocess.run([cxx, *_FLAGS, *_ARCH, "-o", tmp, str(_SRC)], capture_output=True, text=True,
-                             timeout=600)
+                             timeout=600, env=env)
         if res.returncode != 0:  # e.g. a compiler without -march=native
-            res = subprocess.run([cxx, *_FLAGS, "-o", tmp, str(_SRC)], capture_output=True, text=True, timeout=600)
+            res = subprocess.run([cxx, *_FLAGS, "-o", tmp, str(_SRC)], capture_output=True, text=True, timeout=600,
+                                 env=env)
         if res.returncode != 0:
             first = (res.stderr.strip().splitlines() or ["(no output)"])[0]
             raise RuntimeError(f"{cxx} failed on {_SRC.name}: {first}")
@@ -154,12 +163,20 @@ def _declare(lib: ctypes.CDLL) -> None:
 
 
 _state: dict = {}
+_load_lock = threading.Lock()
 
 
 def load() -> Optional[ctypes.CDLL]:
     """The loaded kernel library, building it when missing; None (and one warning) when unavailable."""
     if "lib" in _state:
         return _state["lib"]
+    with _load_lock:
+        if "lib" not in _state:
+            _load()
+    return _state["lib"]
+
+
+def _load() -> None:
     lib, reason = None, None
     if os.environ.get("SOMA_RASTER", "").lower() == "torch":
         reason = "SOMA_RASTER=torch"
@@ -169,10 +186,10 @@ def load() -> Optional[ctypes.CDLL]:
             _declare(lib)
         except (OSError, RuntimeError, AttributeError, subprocess.SubprocessError) as e:
             lib, reason = None, str(e).splitlines()[0] if str(e) else type(e).__name__
-    _state["lib"], _state["reason"] = lib, reason
+    _state["reason"] = reason
+    _state["lib"] = lib
     if lib is None and reason != "SOMA_RASTER=torch":
         _LOG.warning("compiled CPU rasterizer unavailable (%s); rendering with the pure-torch reference", reason)
-    return lib
 
 
 def available() -> bool:
