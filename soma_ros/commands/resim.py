@@ -446,7 +446,6 @@ def resimulate(checkpoint: str, bag: str | Path, out: str | Path, *, run_dir: Op
             frames = scan.counts.get(bag_cams[wanted[0]].color or "")
             ctx = EvalContext.from_run(run, _one_episode_dataset(Path(tmp) / "data", bag, ep_name, frames), scene)
             split = RESIM_SPLIT
-        ref = ctx.refs[0]
 
         # ---- checkpoint, scene and bag agree on the robot
         if ckpt_file is not None and ckpt_file.is_file() and checkpoint != "static":
@@ -468,6 +467,9 @@ def resimulate(checkpoint: str, bag: str | Path, out: str | Path, *, run_dir: Op
         except ValueError as exc:
             raise ValueError(f"{bag}: {topics.joint_states} does not fit the robot '{robot.config.name}' of the "
                              f"checkpoint/scene: {exc}") from None
+        if not ctx.refs:  # the bag did not pass the checks of soma_ros.data.sources.probe_bag
+            raise ValueError(ctx.skipped[0] if ctx.skipped else f"{bag}: not usable")
+        ref = ctx.refs[0]
 
         if dst.exists():
             shutil.rmtree(dst)

@@ -58,7 +58,6 @@ the evaluation-only ``/world/object_points`` topic; nothing here reads the
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Sequence, Union

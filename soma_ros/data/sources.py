@@ -209,7 +209,7 @@ class BagProbe:
     bag: Path
     topics: dict[str, str] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
-    cameras: dict = field(default_factory=dict)  # name -> CameraTopics
+    cameras: dict = field(default_factory=dict)  # name -> soma_ros.data.bags.CameraTopics
     rates_hz: dict[str, float] = field(default_factory=dict)
     sync_ms: dict[str, float] = field(default_factory=dict)  # camera -> worst colour/depth gap to the frame clock
     joint_names: list[str] = field(default_factory=list)
@@ -235,8 +235,7 @@ def _header_stamp(raw: bytes, fallback: int) -> int:
 def probe_bag(bag: Path, topics: Optional[TopicConfig] = None, robot=None, sync_tolerance_ms: float = 20.0,
               cameras: Optional[Sequence[str]] = None) -> BagProbe:
     """Check one bag (module docstring); every problem is one line naming the bag and the topic."""
-    from soma_ros.data.bags import CameraTopics  # noqa: F401  (type of BagProbe.cameras values)
-    from soma_ros.data.bags import FORBIDDEN_TOPICS, _stamp_ns, _tf_parents, nearest_index, tf_to_matrix
+    from soma_ros.data.bags import FORBIDDEN_TOPICS, nearest_index, tf_to_matrix
 
     topics = topics or TopicConfig()
     bag = Path(bag)
