@@ -25,7 +25,9 @@ object pixels of V views (:class:`soma_ros.scene.capture.CaptureViews`) with the
   spacing, else split into two children sampled from it with scales / ``split_factor``.
   Growth is capped at ``max_splats`` (the splats with the largest gradients first).
 * **Pruning** at the same steps and at the end: opacity below ``min_opacity``, or largest
-  scale above ``max_scale`` x spacing; never below ``min_splats`` (the most opaque kept).
+  scale above ``max_scale`` x spacing, or (``hull_px`` >= 0) a centre that projects into a
+  fitted view outside its object mask dilated by ``hull_px`` pixels (outside the visual
+  hull); never below ``min_splats`` (the most opaque kept).
 * **Opacity reset** every ``reset_every`` iterations before ``densify_until``: opacities
   clamped to at most ``reset_opacity`` (3DGS: 0.01), their optimiser state cleared.
 * **Early stopping**: ``check_fraction`` of every view's object pixels, in ``check_block``
@@ -59,6 +61,9 @@ import numpy as np
 import torch
 
 from soma_ros.core.cameras import Cameras
+from soma_ros.core.geometry import covariance_from_scale_rot, quat_normalize, quat_to_rotmat
+from soma_ros.core.metrics import masked_psnr, ssim_map
+from soma_ros.core.render import render
 from soma_ros.core.splats import Splats, sh_dc_to_rgb, view_dependent_colors
 
 __all__ = ["FitConfig", "load_fit_config", "fit_splats", "densify_and_prune", "ParamState", "ViewCrop",
@@ -106,6 +111,7 @@ class FitConfig:
     min_splats: int = 10
     min_opacity: float = 0.005
     max_scale: float = 20.0
+    hull_px: int = -1  # >= 0: also prune splats whose centre falls outside a view's mask dilated by this many px
     reset_every: int = 0
     reset_opacity: float = 0.01
     views_per_iter: int = 1
@@ -315,7 +321,8 @@ class ParamState:
     def snapshot(self) -> dict[str, torch.Tensor]:
         return {k: v.detach().clone() for k, v in self.p.items()}
 
-    def splats(self, values: Optional[dict] = None, base: Optional[Splats] = None) -> Splats:
+    def splats(self, values: Optional[dict] = None) -> Splats:
+        """The current (or ``values``') parameters as Splats, the total mass spread evenly."""
         p = values if values is not None else {k: v.detach() for k, v in self.p.items()}
         q = p["quats"] / p["quats"].norm(dim=-1, keepdim=True).clamp_min(1e-12)
         n = p["means"].shape[0]
@@ -325,21 +332,13 @@ class ParamState:
                       mass=mass)
 
 
-def _quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], dim=-1).reshape(q.shape[:-1] + (3, 3))
-
-
 @torch.no_grad()
 def densify_and_prune(state: ParamState, grad_mean: torch.Tensor, cfg: FitConfig, spacing: float,
-                      generator: Optional[torch.Generator] = None, grow: bool = True) -> dict:
+                      generator: Optional[torch.Generator] = None, grow: bool = True, hull=None) -> dict:
     """One densify (clone / split by mean view-space gradient ``grad_mean`` [N]) and prune step
     on ``state`` (see the module docstring); returns counts. The result has between
-    ``min(N, cfg.min_splats)`` and ``max(N, cfg.max_splats)`` splats."""
+    ``min(N, cfg.min_splats)`` and ``max(N, cfg.max_splats)`` splats. ``hull``: a callable
+    means [M, 3] -> bool [M], True for a centre outside the visual hull (pruned)."""
     p = {k: v.detach() for k, v in state.p.items()}
     n = len(state)
     if grad_mean.shape != (n,):
@@ -361,7 +360,7 @@ def densify_and_prune(state: ParamState, grad_mean: torch.Tensor, cfg: FitConfig
         means = [p["means"], p["means"][clone]]
         log_s = [p["log_scales"], p["log_scales"][clone]]
         if len(split):
-            R = _quat_to_rotmat(p["quats"][split])
+            R = quat_to_rotmat(quat_normalize(p["quats"][split]))
             s = p["log_scales"][split].exp()
             offs = torch.randn(2, len(split), 3, generator=generator) * s[None]
             child = p["means"][split][None] + torch.einsum("kij,nkj->nki", R, offs)  # [2, S, 3]
@@ -387,6 +386,8 @@ def densify_and_prune(state: ParamState, grad_mean: torch.Tensor, cfg: FitConfig
     op = torch.sigmoid(new["logit_op"])
     smax_new = new["log_scales"].exp().max(-1).values
     drop = (op < cfg.min_opacity) | (smax_new > cfg.max_scale * spacing)
+    if hull is not None:
+        drop |= hull(new["means"])
     keep_min = min(len(src), cfg.min_splats)
     if int((~drop).sum()) < keep_min:
         order = torch.argsort(op, descending=True)[:keep_min]
@@ -399,6 +400,29 @@ def densify_and_prune(state: ParamState, grad_mean: torch.Tensor, cfg: FitConfig
     q = [float(x) for x in torch.quantile(seen, torch.tensor([0.5, 0.9]))] if len(seen) else [0.0, 0.0]
     return {"clone": n_clone, "split": n_split, "pruned": n_pruned, "splats": len(state), "grad_p50": q[0],
             "grad_p90": q[1]}
+
+
+def outside_hull(views, dilate_px: int):
+    """A callable means [M, 3] -> bool [M]: True where a centre projects inside some view's image
+    but outside its object mask dilated by ``dilate_px`` (ignored pixels count as inside)."""
+    k = 2 * dilate_px + 1
+    masks = torch.nn.functional.max_pool2d(views.masks[:, None].float(), k, stride=1, padding=dilate_px)[:, 0] > 0
+    if views.ignore is not None:
+        masks |= views.ignore
+    V, H, W = masks.shape
+
+    def test(means: torch.Tensor) -> torch.Tensor:
+        uv, z = views.cameras.project(means.detach().to(views.cameras.K.dtype))
+        out = torch.zeros(means.shape[0], dtype=torch.bool)
+        for v in range(V):
+            u_i, v_i = uv[v, :, 0].floor().long(), uv[v, :, 1].floor().long()
+            ok = (z[v] > 0.01) & (u_i >= 0) & (u_i < W) & (v_i >= 0) & (v_i < H)
+            hit = torch.zeros_like(ok)
+            hit[ok] = masks[v][v_i[ok], u_i[ok]]
+            out |= ok & ~hit
+        return out
+
+    return test
 
 
 # ------------------------------------------------------------------ the fit
@@ -414,14 +438,9 @@ def _spacing(means: torch.Tensor) -> float:
 
 def _view_loss(state: ParamState, vc: ViewCrop, cfg: FitConfig, degree: int, bg: torch.Tensor,
                depth_scale: float) -> tuple[torch.Tensor, dict]:
-    from soma_ros.core.metrics import ssim_map
-    from soma_ros.core.render import render
-
     p = state.p
     colors = view_dependent_colors(p["means"], p["sh_dc"], p["sh_rest"], vc.camera.centers(), degree) \
         if degree > 0 else sh_dc_to_rgb(p["sh_dc"])
-    from soma_ros.core.geometry import covariance_from_scale_rot, quat_normalize
-
     covs = covariance_from_scale_rot(p["log_scales"].exp(), quat_normalize(p["quats"]))
     out = render(p["means"], covs, colors, torch.sigmoid(p["logit_op"]), vc.camera, background=bg)
     pred = out.rgb[0]
@@ -447,9 +466,6 @@ def _view_loss(state: ParamState, vc: ViewCrop, cfg: FitConfig, degree: int, bg:
 
 
 def _check_psnr(state: ParamState, crops: list[ViewCrop], degree: int, bg: torch.Tensor) -> float:
-    from soma_ros.core.metrics import masked_psnr
-    from soma_ros.core.render import render
-
     vals = []
     with torch.no_grad():
         sp = state.splats()
@@ -486,6 +502,7 @@ def fit_splats(init: Splats, views, cfg: FitConfig, progress: bool = True) -> Sp
     dvals = [vc.depth[vc.depth > 0] for vc in crops if vc.depth is not None]
     depth_scale = float(torch.cat(dvals).median()) if dvals else 1.0
     grow = cfg.densify_until > cfg.densify_from and cfg.max_splats > len(init)
+    hull = outside_hull(views, cfg.hull_px) if cfg.hull_px >= 0 else None
     cfg.history.clear()
     cfg.best = {"iter": -1, "psnr_check": float("nan"), "sh_degree": degree, "spacing_m": spacing,
                 "extent_m": extent}
@@ -540,7 +557,7 @@ def fit_splats(init: Splats, views, cfg: FitConfig, progress: bool = True) -> Sp
             state.p["log_scales"].clamp_(max=math.log(cfg.max_scale * spacing * 2))
         step = it + 1
         if cfg.densify_from <= step < cfg.densify_until and step % cfg.densify_every == 0:
-            info = densify_and_prune(state, gsum / gcnt.clamp_min(1), cfg, spacing, gen, grow=grow)
+            info = densify_and_prune(state, gsum / gcnt.clamp_min(1), cfg, spacing, gen, grow=grow, hull=hull)
             cfg.history.append({"iter": step, **info})
             gsum, gcnt = torch.zeros(len(state)), torch.zeros(len(state))
         if cfg.reset_every and step < cfg.densify_until and step % cfg.reset_every == 0:
@@ -567,6 +584,8 @@ def fit_splats(init: Splats, views, cfg: FitConfig, progress: bool = True) -> Sp
         final = Splats(final.means, final.quats, final.scales, final.opacities, final.sh_dc, None, final.mass)
     # the last prune: splats that ended transparent or oversized
     keep = (final.opacities >= cfg.min_opacity) & (final.scales.max(-1).values <= cfg.max_scale * spacing)
+    if hull is not None:
+        keep &= ~hull(final.means)
     if int(keep.sum()) >= min(len(final), cfg.min_splats):
         final = final.index(keep)
         final.mass = final.mass.new_full((len(final),), state.mass_total / max(len(final), 1))
