@@ -150,7 +150,8 @@ def test_node_mode_draws_what_a_running_node_publishes(ros_env, ros_context, unt
     try:
         src.start()
         ok = probe.hold(hover, lambda: (view._splat_data is not None and view._robot is not None
-                                        and {"cam_front", "cam_wrist"} <= set(cams)) or not node.alive(), 120.0)
+                                        and {"cam_front", "cam_wrist"} <= set(cams)
+                                        and "step rate" in view._status.content) or not node.alive(), 120.0)
         assert ok and node.alive(), (view._splat_data is None, view._robot, set(cams), node.output()[-3000:])
         means = view._splat_data[0]
         state, _, _ = live.snapshot()
@@ -160,7 +161,7 @@ def test_node_mode_draws_what_a_running_node_publishes(ros_env, ros_context, unt
         assert live.cameras[1].name == "cam_wrist"
         np.testing.assert_allclose(T, want, atol=1e-4)
         assert kw["sim_image"].shape == (h, w, 3) and kw["sim_image"].max() > 0
-        assert "step rate" in view._status.content and "restarts" in view._status.content
+        assert "restarts" in view._status.content and "settles" in view._status.content
     finally:
         src.stop()
         view.close()
