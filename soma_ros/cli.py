@@ -26,6 +26,7 @@ COMMANDS: list[tuple[str, str, str]] = [
     ("train", "train", "fit the simulator offline from rosbags"),
     ("eval", "eval", "evaluate a checkpoint on a dataset (open-loop rollouts)"),
     ("resim", "resim", "open-loop resimulation of one bag, without ROS running"),
+    ("view", "view", "a live 3D view of the twin in the browser (splats, robot, cameras)"),
     ("discrepancy", "discrepancy", "find and name effects missing from the model"),
     ("config", "config", "the configuration reference, and configs with their bases applied"),
     ("bench", "bench", "benchmarks (speed, memory, accuracy)"),
@@ -44,12 +45,11 @@ def build_parser(argv: Optional[Sequence[str]] = None) -> argparse.ArgumentParse
     parser.add_argument("--version", action="version", version=f"soma_ros {__version__}")
     parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    wanted = None
-    if argv:
-        wanted = next((a for a in argv if not a.startswith("-")), None)
+    wanted = next((a for a in argv if not a.startswith("-")), None) if argv else None
     for name, module, help_text in COMMANDS:
-        if wanted is not None and wanted != name:
-            # Only import the module that is asked for; the others get a stub parser for --help.
+        if wanted != name:
+            # Only import the module that is asked for (none for `soma --help`): the others get a
+            # stub parser, enough for the command list.
             sub.add_parser(name, help=help_text, add_help=False)
             continue
         try:

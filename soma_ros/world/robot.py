@@ -11,7 +11,6 @@ compensation and the geom colour.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 import mujoco
 import numpy as np
 

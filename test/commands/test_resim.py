@@ -208,6 +208,45 @@ def test_mcap_with_mcap_ros2_support_decodes_every_message_of_the_resim_bag(resi
     assert {"/soma/splats", "/tf", "/joint_states", "/soma/cam_front/depth"} <= set(topics)
 
 
+def test_view_plays_the_resim_output_back(resim_out, tiny_run):
+    """`soma view --resim`'s source: one frame per simulated cloud, each with the splats (coloured by
+    their distance to the ground-truth points), the robot from the bag's /robot_description, and the
+    recorded image beside the simulated one for every camera."""
+    from soma_ros.viewer.resim import ResimSource
+    from soma_ros.viewer.scene import TwinView
+
+    data, run = tiny_run
+    out, _, _ = resim_out
+    view = TwinView(port=0)
+    cams: dict = {}
+    real_set_camera = view.set_camera
+    view.set_camera = lambda name, *a, **k: (cams.__setitem__(name, k), real_set_camera(name, *a, **k))
+    try:
+        src = ResimSource(view, str(out), scene=str(run / "scene"))
+        got = _read(out / "resim_bag")
+        assert len(src.frames) == len(got["/soma/splats"]) == 10
+        assert view._robot is not None
+        src.show(len(src.frames) - 1)
+        last = cloud_to_splats_raw(got["/soma/splats"][-1])
+        np.testing.assert_allclose(view._splat_data[0], last.means.numpy(), atol=1e-5)
+        err = view._error
+        assert err is not None and err.shape == (len(last),) and np.all(err >= 0) and 0 < np.median(err) < 0.2
+        assert set(cams) == {"cam_wrist", "cam_front", "cam_side"}
+        for k in cams.values():
+            assert k["sim_image"] is not None and k["real_image"] is not None
+            assert k["sim_image"].shape == k["real_image"].shape == (120, 160, 3)
+        assert "error to ground truth" in view._status.content
+        src.stop()
+    finally:
+        view.close()
+
+
+def cloud_to_splats_raw(entry):
+    from soma_ros.core.cloud_layout import cloud_to_splats
+
+    return cloud_to_splats(_msg(entry))
+
+
 def test_metrics_equal_the_evaluation_harness(resim_out, tiny_run, tmp_path):
     from soma_ros.cli import main
     from soma_ros.evaluation.baselines import load_model

@@ -126,9 +126,9 @@ def test_bag_topics_types_and_encodings(worlds, obj):
     n = worlds[obj]["meta"]["frames"]
     expected = topics_for(CAMERA_NAMES)
     assert bag["__types__"] == expected
-    assert len(bag["/tf_static"]) == 1
+    assert len(bag["/tf_static"]) == len(bag["/robot_description"]) == 1  # latched, once
     for topic in expected:
-        if topic != "/tf_static":
+        if topic not in ("/tf_static", "/robot_description"):
             assert len(bag[topic]) == n, topic
     js = bag["/joint_states"][0][1]
     assert js.name == [f"panda_joint{i}" for i in range(1, 8)] + ["panda_finger_joint1", "panda_finger_joint2"]
@@ -189,7 +189,10 @@ def test_timestamps_agree_across_topics(worlds, obj):
     for topic, items in bag.items():
         if topic in ("__types__",):
             continue
-        stamps = [stamp_ns(m) for _, m in items] if topic != "/tf_static" else [stamp_ns(items[0][1].transforms[0])]
+        if topic == "/robot_description":  # no header: the bag time only
+            assert [t for t, _ in items] == ref[:1]
+            continue
+        stamps = [stamp_ns(m.transforms[0]) if topic in ("/tf", "/tf_static") else stamp_ns(m) for _, m in items]
         want = ref if topic != "/tf_static" else ref[:1]
         assert stamps == want, topic
         assert [t for t, _ in items] == want, topic  # bag time == header stamp
