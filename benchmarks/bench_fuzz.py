@@ -92,7 +92,7 @@ class Node:
         self.proc = RosProcess("soma_ros.nodes.sim_node", args, ros_env(self.domain), name="fuzz_sim_node")
         self.probe = LiveProbe(self.ctx, names, cameras=cameras, splats=False)
 
-    def started(self, vec, timeout: float = 240.0) -> None:
+    def started(self, vec, timeout: float = 600.0) -> None:
         p = self.probe
         ok = p.hold(vec, lambda: (p.last_status() is not None and p.count.get(("image", "cam_front"), 0) > 0)
                     or not self.proc.alive(), timeout)
