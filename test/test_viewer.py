@@ -167,3 +167,15 @@ def test_node_mode_draws_what_a_running_node_publishes(ros_env, ros_context, unt
         view.close()
         node.stop()
         probe.close()
+
+
+def test_bad_inputs_are_one_line_errors(tmp_path, capsys):
+    from soma_ros.cli import main
+
+    for args, what in ((["view", "--run", str(tmp_path / "nothing")], "no checkpoint at"),
+                       (["view", "--resim", str(tmp_path)], "no rosbag2 at"),
+                       (["view", "--node", "--layers", "splats,bogus"], "unknown layer(s) bogus"),
+                       (["view", "--node", "--draw-rate", "0"], "--draw-rate must be > 0")):
+        assert main(args) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("soma view: error:") and what in err[0], err
