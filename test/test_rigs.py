@@ -215,7 +215,7 @@ def test_box_rasterizes_to_its_projection():
 def test_user_mask_folder_takes_precedence(world, robot, tmp_path):
     import cv2
 
-    from soma_ros.training.config import DataConfig
+    from soma_ros.data.config import DataConfig
     from soma_ros.data.dataset import prepare_episode
 
     bag = rewrite_bag(world, tmp_path / "nomask", RigForm(strip_masks=True))
@@ -275,7 +275,7 @@ def _bad_bags(world: Path, d: Path) -> dict[str, tuple[Path, str]]:
 
 def test_every_bad_bag_class_is_named_and_skipped(world, robot, tmp_path):
     from soma_ros.data.bags import BagError
-    from soma_ros.training.config import DataConfig
+    from soma_ros.data.config import DataConfig
     from soma_ros.data.sources import load_dataset, probe_bag, usable_episodes
 
     d = tmp_path / "mixed"

@@ -139,7 +139,7 @@ def _refs(spec):
 
 
 def test_validation_is_stratified_over_the_training_tasks():
-    from soma_ros.training.config import DataConfig
+    from soma_ros.data.config import DataConfig
     from soma_ros.training.train import split_validation
 
     refs = _refs([("e0", "lift"), ("e1", "drag"), ("e2", "lift"), ("e3", "fold"), ("e4", "lift"), ("e5", "drag"),

@@ -71,7 +71,7 @@ from soma_ros.core.robot import RobotModel
 from soma_ros.core.simulator import RobotAction
 
 from soma_ros.data.bags import BagError, Episode, TopicConfig, camera_mount, read_episode, resolve_camera_poses, world_from_base
-from soma_ros.training.config import DataConfig, TrainConfig
+from soma_ros.data.config import DataConfig
 from soma_ros.data.sources import ANY_SPLIT, MANIFEST, EpisodeRef, _read_manifest, load_dataset  # noqa: F401  (shared API)
 
 __all__ = [
@@ -322,7 +322,7 @@ def episode_masks(ep: Episode, robot: RobotModel, fk_np: dict[str, np.ndarray], 
 def prepare_episode(
     bag: Union[str, Path],
     robot: RobotModel,
-    cfg: Union[DataConfig, TrainConfig, None] = None,
+    cfg: Optional[DataConfig] = None,
     base_to_sim: Optional[Sim3] = None,
     name: Optional[str] = None,
     mask_cache: Optional[Path] = None,
@@ -335,7 +335,7 @@ def prepare_episode(
     Masks a bag lacks come from ``cfg.masks`` (:func:`episode_masks`; derived ones are cached
     in ``mask_cache`` when given). Raises :class:`~soma_ros.data.bags.BagError` (one line) for unusable bags.
     """
-    if isinstance(cfg, TrainConfig):
+    if hasattr(cfg, "data") and not isinstance(cfg, DataConfig):  # a whole training config
         cfg = cfg.data
     cfg = cfg or DataConfig()
     bag = Path(bag)

@@ -114,7 +114,7 @@ def test_prepare_episode_shapes_frames_and_actions(good_dataset, robot):
     uv, z = cams.select([fixed]).project(pts)
     assert (z > 0).all()
     # downscaled training resolution
-    from soma_ros.training.config import DataConfig
+    from soma_ros.data.config import DataConfig
 
     half = prepare_episode(refs[0].bag, robot, DataConfig(resolution_scale=0.5))
     assert (half.width, half.height) == (80, 60) and torch.allclose(half.K[:, :2], ep.K[:, :2] * 0.5)
