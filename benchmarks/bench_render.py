@@ -166,6 +166,39 @@ def bench_render(
     return rows
 
 
+def agreement_on_run(run_dir: str) -> dict:
+    """Torch reference vs compiled kernels on a run's scene (RUN/scene) through its fixed cameras:
+    the loss ``mean |rgb - shifted rgb| + mean depth``, the images and the gradients with respect to
+    means, covariances, colours and opacities (float32, as training renders)."""
+    import numpy as np
+
+    from soma_ros.core.scene_bundle import SceneBundle
+
+    b = SceneBundle.load(os.path.join(run_dir, "scene"))
+    fixed = [c for c in b.cameras if c.cam_to_sim is not None]
+    if not fixed:
+        raise ValueError(f"{run_dir}/scene has no fixed camera")
+    cams = Cameras.from_cam_to_world(np.stack([c.K for c in fixed]), np.stack([c.cam_to_sim for c in fixed]),
+                                     fixed[0].width, fixed[0].height, names=[c.name for c in fixed])
+    sp = b.splats
+    target, res = None, {}
+    for raster in ("torch", "compiled"):
+        ins = [t.detach().float().clone().requires_grad_(True)
+               for t in (sp.means, sp.covariances(), sp.colors(), sp.opacities)]
+        out = render(ins[0], ins[1], ins[2], ins[3], cams.to(dtype=torch.float32), cfg=RenderConfig(raster=raster))
+        if target is None:
+            target = torch.roll(out.rgb.detach(), 2, dims=2)
+        loss = (out.rgb - target).abs().mean() + out.depth.mean()
+        loss.backward()
+        res[raster] = (float(loss.detach()), out.rgb.detach(), [t.grad for t in ins])
+    (la, ia, ga), (lb, ib, gb) = res["torch"], res["compiled"]
+    row = dict(splats=len(sp), cameras=len(fixed), width=cams.width, height=cams.height,
+               loss_rel_diff=abs(la - lb) / abs(la), image_max_abs_diff=float((ia - ib).abs().max()))
+    for name, x, y in zip(("means", "covs", "colors", "opacities"), ga, gb):
+        row[f"grad_{name}_rel_l2"] = float((x - y).norm() / x.norm())
+    return row
+
+
 def format_table(rows: list[dict]) -> str:
     hdr = (f"{'res':>9} {'splats':>7} {'fwd ms':>8} {'(min)':>7} {'(CPU)':>7} {'fwd+bwd ms':>11} {'(min)':>7} "
            f"{'(CPU)':>7} {'cover':>6} {'isect':>7} {'RSS MB':>7}")
@@ -189,8 +222,15 @@ def main(argv=None) -> None:
     ap.add_argument("--raster", default="both", choices=["both", "auto", "torch", "compiled"],
                     help="CPU compositor (RenderConfig.raster); 'both' times torch and compiled and prints ratios")
     ap.add_argument("--json", dest="json_path", default=None, help="also write the rows to this JSON file")
+    ap.add_argument("--agreement", metavar="RUN", default=None,
+                    help="only compare torch and compiled (loss, images, gradients) on RUN/scene and exit")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
+    if args.agreement:
+        row = agreement_on_run(args.agreement)
+        print(f"{args.agreement}: {row['splats']} splats, {row['cameras']} fixed camera(s) {row['width']}x{row['height']}")
+        print("  " + "  ".join(f"{k}={v:.2e}" for k, v in row.items() if isinstance(v, float)))
+        return
     print(machine_description(args.device))
     l1, l5, _ = os.getloadavg()
     print(f"load average {l1:.2f} {l5:.2f} on {os.cpu_count()} cores (before)")

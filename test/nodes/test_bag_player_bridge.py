@@ -71,7 +71,8 @@ def samples():
             is_dense=True),
         "status": _all_fields(T["soma_msgs/msg/SimStatus"],
             header=header("soma_sim"), state="running", step=2**40 + 3, num_splats=13000, step_time_ms=1.5,
-            render_time_ms=2.25, joint_state_lag_ms=0.5, step_rate_hz=30.0, image_rate_hz=10.0,
+            render_time_ms=2.25, step_cpu_ms=1.25, render_cpu_ms=2.0, engine_step_ms=1.0, engine_render_ms=2.0,
+            joint_state_lag_ms=0.5, step_rate_hz=30.0, image_rate_hz=10.0,
             joint_states_received=7, joint_states_rejected=1, failure_restarts=2, settles=1),
         "bytes": T["std_msgs/msg/ByteMultiArray"](
             layout=T["std_msgs/msg/MultiArrayLayout"](

@@ -137,8 +137,10 @@ def test_soma_msgs_in_a_bag_without_ros(tmp_path):
             c2 = w.add_connection("/soma/splats", "sensor_msgs/msg/PointCloud2", typestore=ts)
             for i in range(3):
                 st = Status(header=Header(stamp=Time(sec=i, nanosec=0), frame_id="soma_sim"), state="running",
-                            step=i, num_splats=1234, step_time_ms=1.5, render_time_ms=2.5, joint_state_lag_ms=0.0,
-                            step_rate_hz=30.0, image_rate_hz=10.0, joint_states_received=i, joint_states_rejected=0, joint_states_dropped=0,
+                            step=i, num_splats=1234, step_time_ms=1.5, render_time_ms=2.5, step_cpu_ms=1.25,
+                            render_cpu_ms=2.0, engine_step_ms=1.25, engine_render_ms=2.0, joint_state_lag_ms=0.0,
+                            step_rate_hz=30.0, image_rate_hz=10.0, joint_states_received=i, joint_states_rejected=0,
+                            joint_states_dropped=0,
                             failure_restarts=0, settles=0)
                 w.write(c1, i * 10**9, ts.serialize_cdr(st, Status.__msgtype__))
             w.write(c2, 5, ts.serialize_cdr(_rosbags_cloud(splats), "sensor_msgs/msg/PointCloud2"))
