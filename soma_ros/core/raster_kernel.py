@@ -236,7 +236,7 @@ def project(means: torch.Tensor, covs: torch.Tensor, opacities: torch.Tensor, ca
 
     means [N, 3], covs [N, 3, 3], opacities [N] (CPU, float32/64) -> ``Projected`` with V rows.
     """
-    from .render import Projected
+    from .render_raster import Projected
 
     dt = means.dtype
     lib = _lib()

@@ -60,7 +60,7 @@ import torch
 
 from . import raster_kernel
 from .cameras import Cameras
-from .render_raster import build_plan, composite
+from .render_raster import Projected, build_plan, composite
 
 __all__ = [
     "RenderConfig",
@@ -136,21 +136,6 @@ class RenderOutput:
     backend: str = "torch"  # "torch" (reference), "compiled" (CPU kernels) or "gsplat"
     n_visible: int = 0  # visible (camera, splat) pairs
     n_isect: int = 0  # (tile, splat) intersections (torch backend)
-
-
-@dataclass
-class Projected:
-    """Visible (camera, splat) pairs after projection and culling; V entries."""
-
-    cam_idx: torch.Tensor  # [V] long
-    splat_idx: torch.Tensor  # [V] long
-    mean2d: torch.Tensor  # [V, 2] pixels
-    conic: torch.Tensor  # [V, 3] inverse of cov2d: (a, b, c) = [[a, b], [b, c]]
-    cov2d: torch.Tensor  # [V, 3] (sxx, sxy, syy) including eps2d
-    depth: torch.Tensor  # [V] camera-frame z of the mean
-    opacity: torch.Tensor  # [V]
-    smin: torch.Tensor  # [V] cut-off on s = log(opacity) - power
-    pmax: torch.Tensor  # [V] cut-off on power
 
 
 @functools.lru_cache(maxsize=1)

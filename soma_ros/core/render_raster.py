@@ -54,7 +54,23 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-__all__ = ["RasterPlan", "build_plan", "composite"]
+
+@dataclass
+class Projected:
+    """Visible (camera, splat) pairs after projection and culling; V entries."""
+
+    cam_idx: torch.Tensor  # [V] long
+    splat_idx: torch.Tensor  # [V] long
+    mean2d: torch.Tensor  # [V, 2] pixels
+    conic: torch.Tensor  # [V, 3] inverse of cov2d: (a, b, c) = [[a, b], [b, c]]
+    cov2d: torch.Tensor  # [V, 3] (sxx, sxy, syy) including eps2d
+    depth: torch.Tensor  # [V] camera-frame z of the mean
+    opacity: torch.Tensor  # [V]
+    smin: torch.Tensor  # [V] cut-off on s = log(opacity) - power
+    pmax: torch.Tensor  # [V] cut-off on power
+
+
+__all__ = ["Projected", "RasterPlan", "build_plan", "composite"]
 
 
 @dataclass
