@@ -137,3 +137,37 @@ def test_core_imports_no_ros():
     found = {mod: sorted(names & ROS_NAMES) for mod, names in external_imports(ROOT, "soma_ros").items()
              if mod.startswith("soma_ros.core") and names & ROS_NAMES}
     assert found == {}, f"ROS imports under soma_ros/core: {found}"
+
+
+#: The package's layers, lowest first: a module may import its own layer and those below.
+LAYERS = [
+    {"core"},
+    {"world", "data", "scene"},
+    {"training"},
+    {"evaluation"},
+    {"discrepancy"},
+    {"live", "nodes", "viewer", "commands", "cli", "demo", "demo_report"},
+]
+#: Modules of the package root that sit below every layer (no soma_ros imports of their own).
+FOUNDATION = {"soma_ros", "soma_ros.paths", "soma_ros.bagtypes"}
+
+
+def _layer(module: str) -> int:
+    area = module.split(".")[1] if module.count(".") >= 1 else ""
+    for rank, names in enumerate(LAYERS):
+        if area in names:
+            return rank
+    raise AssertionError(f"{module}: not in any layer of test_architecture.LAYERS")
+
+
+def test_imports_point_down_the_layers():
+    graph = import_graph(ROOT, ["soma_ros"])
+    upward = sorted(f"{m} -> {t}" for m, ts in graph.items() if m not in FOUNDATION
+                    for t in ts if t not in FOUNDATION and _layer(t) > _layer(m))
+    assert upward == [], "imports that point up the layers:\n" + "\n".join(upward)
+
+
+def test_the_foundation_imports_nothing_above_it():
+    graph = import_graph(ROOT, ["soma_ros"])
+    bad = sorted(f"{m} -> {t}" for m in FOUNDATION for t in graph.get(m, ()) if t not in FOUNDATION)
+    assert bad == []

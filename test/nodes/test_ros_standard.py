@@ -146,7 +146,7 @@ def test_world_bag_decodes_with_mcap_and_every_frame_reaches_world(world_bag):
 
     urdf = by_topic["/robot_description"][0].data
     assert "<robot" in urdf
-    frames = RobotFrames(Path(__file__).resolve().parents[1] / "soma_ros/resources/robots/franka_panda/panda.urdf")
+    frames = RobotFrames(Path(__file__).resolve().parents[2] / "soma_ros/resources/robots/franka_panda/panda.urdf")
     assert set(frames.links) <= set(parents) | {"panda_link0"}
     js = by_topic["/joint_states"][-1]
     want = frames.link_poses(list(js.name), np.asarray(js.position))["panda_hand"][0]

@@ -19,7 +19,7 @@ import torch
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tools"))
 
 from rig_bags import RigForm, corrupt_bag, rewrite_bag, truncate_bag, write_manifest  # noqa: E402

@@ -3,7 +3,7 @@
 the tasks and the selection score (soma_ros/training/train.py, soma_ros/training/config.py, soma_ros/evaluation/baselines.py,
 soma_ros/evaluation/accuracy.py).
 
-Fast: no dataset, no training run (test/test_trainer.py trains for real and checks the files a run
+Fast: no dataset, no training run (test/training/test_trainer.py trains for real and checks the files a run
 writes, ``val_tasks.csv`` / ``val_tasks.png`` included).
 """
 
