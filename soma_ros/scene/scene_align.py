@@ -345,7 +345,7 @@ def _write_bundle(out, splats: Splats, object_name: str, robot: str, views, dt: 
     from soma_ros.core.scene_bundle import CameraSpec, SceneBundle
 
     from soma_ros.training.config import TrainConfig
-    from soma_ros.training.train import save_scene
+    from soma_ros.scene.files import save_scene
 
     obj = load_object_config(object_name)
     mc = load_model_config(TrainConfig().validate().model, object=obj)
@@ -432,7 +432,7 @@ def align_to_bag(file, bag, out, cfg: Optional[AlignConfig] = None, object_name:
     from soma_ros.training.config import TrainConfig, load_train_config
     from soma_ros.data.dataset import prepare_episode
     from soma_ros.scene.scene_setup import episode_views, setup_scene
-    from soma_ros.training.train import save_scene
+    from soma_ros.scene.files import save_scene
 
     t0 = time.time()
     out = Path(out)

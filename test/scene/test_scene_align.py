@@ -89,7 +89,7 @@ def test_scene_align_from_a_bag_writes_a_bundle_the_node_runs(rope_bag, referenc
     from soma_ros.live import load_live
     from soma_ros.nodes.testing import RosProcess
     from soma_ros.scene.scene_align import transform_splats
-    from soma_ros.training.train import load_scene
+    from soma_ros.scene.files import load_scene
 
     g0, _ = reference_scene
     scan = tmp_path / "scan.ply"
