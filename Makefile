@@ -44,13 +44,15 @@ help:
 
 setup: $(STAMP_PKG)
 
-# Mesa EGL for MuJoCo's offscreen CPU rendering; cmake/g++ for the interface build.
+# Mesa EGL for MuJoCo's offscreen CPU rendering; cmake/g++ for the interface build and the
+# compiled rasterizer; Chromium for the browser test of `soma view`.
 $(STAMP_SYS):
 	@mkdir -p build
 	@missing=""; \
 	ldconfig -p | grep -q 'libEGL_mesa.so' || missing="$$missing libegl1 libegl-mesa0 libgl1-mesa-dri"; \
 	command -v cmake >/dev/null || missing="$$missing cmake"; \
 	command -v g++ >/dev/null || missing="$$missing g++"; \
+	command -v chromium >/dev/null || missing="$$missing chromium"; \
 	if [ -n "$$missing" ]; then \
 	  echo "installing system packages:$$missing"; \
 	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; \
