@@ -43,6 +43,30 @@ def camera_frame_id(sim_frame: str, cam: str) -> str:
     return f"{sim_frame}/{cam}_optical"
 
 
+def _transforms(edges, stamp) -> list:
+    """[(parent, child, T [1, 4, 4])] -> TransformStamped list, the quaternions in one batched call."""
+    import torch
+    from geometry_msgs.msg import TransformStamped
+
+    from ..core.geometry import rotmat_to_quat
+
+    if not edges:
+        return []
+    T = np.stack([t[0] for _, _, t in edges])  # [J, 4, 4]
+    q = rotmat_to_quat(torch.from_numpy(T[:, :3, :3])).numpy()  # [J, 4] w, x, y, z
+    out = []
+    for (parent, child, _), Tj, qj in zip(edges, T, q):
+        tf = TransformStamped()
+        tf.header.stamp = stamp
+        tf.header.frame_id = parent
+        tf.child_frame_id = child
+        tr, r = tf.transform.translation, tf.transform.rotation
+        tr.x, tr.y, tr.z = (float(v) for v in Tj[:3, 3])
+        r.w, r.x, r.y, r.z = (float(v) for v in qj)
+        out.append(tf)
+    return out
+
+
 class RobotTf:
     """Publishes the static tree once and the robot's moving links on request (module docstring)."""
 
@@ -97,7 +121,6 @@ class RobotTf:
         if not self.publish_robot or joint_vec is None or stamp_ns == self._last_stamp:
             return False
         stamp = stamp_from_ns(stamp_ns)
-        tfs = [matrix_to_tf(T[0], p, c, stamp) for p, c, T in self.frames.moving_transforms(self.names, joint_vec)]
-        self.pub_tf.publish(TFMessage(transforms=tfs))
+        self.pub_tf.publish(TFMessage(transforms=_transforms(self.frames.moving_transforms(self.names, joint_vec), stamp)))
         self._last_stamp = stamp_ns
         return True

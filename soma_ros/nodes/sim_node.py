@@ -151,6 +151,7 @@ class SomaSimNode(Node):
         self.rate_hz = _float_param(self, "rate_hz", 30.0, "physics step rate, Hz", 0.5, 1000.0)
         self.render_rate_hz = _float_param(self, "render_rate_hz", 10.0, "image publish rate, Hz (0 = no images)", 0.0, 120.0)
         self.splat_rate_hz = _float_param(self, "splat_rate_hz", 5.0, "splat cloud publish rate, Hz (0 = none)", 0.0, 120.0)
+        self.tf_rate_hz = _float_param(self, "tf_rate_hz", 10.0, "robot link /tf publish rate, Hz (0 = none)", 0.0, 1000.0)
         self.render_scale = _float_param(self, "render_scale", 1.0, "image scale relative to the bundle's cameras", 0.05, 4.0)
         self.max_travel = _float_param(self, "max_object_travel_m", 2.0,
                                        "a step that puts a splat this far outside the initial scene's bounding sphere "
@@ -281,8 +282,9 @@ class SomaSimNode(Node):
         self._step_lock = threading.Lock()
         self._failure_resets = 0
         self._set_frame(None)
-        self.loops = [FixedRateLoop("soma_step", self.rate_hz, self._on_step),
-                      FixedRateLoop("soma_tf", self.rate_hz, self._on_tf)]
+        self.loops = [FixedRateLoop("soma_step", self.rate_hz, self._on_step)]
+        if self.tf_rate_hz > 0:
+            self.loops.append(FixedRateLoop("soma_tf", self.tf_rate_hz, self._on_tf))
         if self.render_rate_hz > 0:
             self.loops.append(FixedRateLoop("soma_render", self.render_rate_hz, self._on_render))
         if self.splat_rate_hz > 0:
