@@ -66,7 +66,7 @@ def _start_viewer(domain: int, browser: bool, log: Path):
     f = open(log, "w")
     proc = subprocess.Popen([sys.executable, "-m", "soma_ros.cli", "view", "--node", "--port", "0"],
                             env=ros_env(domain, {"PYTHONPATH": str(ROOT)}), stdout=f, stderr=subprocess.STDOUT,
-                            cwd=ROOT, start_new_session=True)
+                            cwd=ROOT, process_group=0)
     deadline = time.monotonic() + 120
     url = None
     while time.monotonic() < deadline and url is None:
@@ -83,7 +83,7 @@ def _start_viewer(domain: int, browser: bool, log: Path):
 
         profile = tempfile.mkdtemp(prefix="soma_bench_chromium_")
         chrome = subprocess.Popen([find_browser(), *CHROMIUM_FLAGS, f"--user-data-dir={profile}", url],
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, process_group=0)
     return proc, chrome
 
 

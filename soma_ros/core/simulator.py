@@ -54,8 +54,7 @@ its excess only where the network runs on it (``gnn.splat_head``) or where
 ``dynamics.direct_splats`` is set (then the direct acceleration alone, bounded as on the
 cluster levels); otherwise splats follow their fine cluster, which only translates and turns
 as the network says: a direct term that bends the object within a fine cluster (the physics
-prior's rod) is realised only as far as the clusters' translations follow it (session 41,
-docs/discrepancy.md). Reference effects (gravity, support) cannot be direct
+prior's rod) is realised only as far as the clusters' translations follow it. Reference effects (gravity, support) cannot be direct
 (their response is the learned one, subtracted at rest). With no direct effect
 the step is the network-only step, bit for bit; a direct effect whose force is zero adds exact zeros (same positions). A direct effect with
 ``feature: false`` is left out of the F/m feature: pure physics the network does not

@@ -381,8 +381,8 @@ class IdentifyConfig:
 
     ``then``: further coefficients identified in turn, each at the values chosen before it, on the
     same episodes: ``[{coefficient, values, extend}, ...]`` (e.g. the bending first, then how far the
-    rope stretches; session 40: the reference world's rope stretches 10-15% next to the fingers,
-    where the default prior is nearly inextensible). Empty (default): one coefficient."""
+    rope stretches: the reference world's rope stretches 10-15% next to the fingers, where the
+    default prior is nearly inextensible). Empty (default): one coefficient."""
 
     coefficient: str = "bend"
     values: list = field(default_factory=list)

@@ -95,7 +95,7 @@ def screenshot(url: str, out: Path, wait_s: float = 20.0, size: tuple[int, int] 
     with tempfile.TemporaryDirectory(prefix="soma_chromium_") as profile:
         cmd = [exe, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "--remote-debugging-port=0",
                f"--window-size={size[0]},{size[1]}", "about:blank"]
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, process_group=0)
         try:
             port = _devtools_port(Path(profile), proc, timeout=min(60.0, timeout_s))
             with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as r:

@@ -66,7 +66,7 @@ def _start_view(run: Path, layers: str, env) -> tuple[subprocess.Popen, str, Pat
     f = open(log, "w")
     proc = subprocess.Popen([sys.executable, "-m", "soma_ros.cli", "view", "--run", str(run), "--port", "0",
                              "--layers", layers, "--rate", "5", "--image-rate", "0", "--draw-rate", "2"],
-                            stdout=f, stderr=subprocess.STDOUT, env=env, cwd=ROOT, start_new_session=True)
+                            stdout=f, stderr=subprocess.STDOUT, env=env, cwd=ROOT, process_group=0)
     deadline = time.monotonic() + 180
     while time.monotonic() < deadline:
         m = re.search(r"serving (http://\S+)", log.read_text())
