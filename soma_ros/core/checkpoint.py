@@ -22,7 +22,7 @@ checksum           "sha256:<hex>" of the content above (:func:`content_checksum`
 
 Every load verifies the checksum (:func:`read_checkpoint`): a file with flipped
 bytes that torch still unpickles is refused with a one-line error naming it.
-A file written before checksums existed loads with a warning that it was not
+A file without a checksum (an older format) loads with a warning that it was not
 verified. Training states (``train_state.pt``) carry the same checksum;
 :func:`save_train_state` keeps the previous state beside the new one and
 :func:`load_train_state` falls back to it, saying so, when the newest is
