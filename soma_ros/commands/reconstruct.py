@@ -64,7 +64,14 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--quality and --fit-config apply to --capture folders; a bag's fit follows its train "
                          "config's scene section")
     info = reconstruct_bag(Path(args.bag), out, robot=args.robot, object_name=args.object, iters=args.iters,
-                           progress=not args.quiet, config=args.config,
+                           progress=not args.quiet, config=_train_config(args.config),
                            ply=Path(args.ply) if args.ply else None)
     print(json.dumps(info, indent=2))
     return 0
+
+
+def _train_config(name):
+    """The training config whose data and scene sections a bag's scene set-up follows."""
+    from soma_ros.training.config import TrainConfig, load_train_config
+
+    return load_train_config(name) if name else TrainConfig().validate()

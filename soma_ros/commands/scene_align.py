@@ -49,6 +49,13 @@ def run_align(args: argparse.Namespace) -> int:
                                   robot=args.robot, dt=args.dt, progress=not args.quiet)
     else:
         report = align_to_bag(Path(args.file), Path(args.bag), Path(args.out), cfg, object_name=args.object,
-                              robot=args.robot, config=args.config, progress=not args.quiet)
+                              robot=args.robot, config=_train_config(args.config), progress=not args.quiet)
     print(json.dumps(report, indent=2))
     return 0
+
+
+def _train_config(name):
+    """The training config whose data and scene sections a bag's scene set-up follows."""
+    from soma_ros.training.config import TrainConfig, load_train_config
+
+    return load_train_config(name) if name else TrainConfig().validate()

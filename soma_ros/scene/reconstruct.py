@@ -94,7 +94,7 @@ def reconstruct_capture(folder: Path, out: Path, holdout: Optional[int] = None, 
 
 
 def reconstruct_bag(bag: Path, out: Path, robot: str = "panda", object_name: str = "rope", iters: Optional[int] = None,
-                    progress: bool = True, config: Optional[str] = None, ply: Optional[Path] = None) -> dict:
+                    progress: bool = True, config=None, ply: Optional[Path] = None) -> dict:
     """Scene set-up from an episode bag (see :mod:`soma_ros.scene.scene_setup`): G_0 from the fused masked
     depth of the first frame(s) refined photometrically (or a user ``ply`` already in the sim frame),
     table plane and gravity, robot -> sim transform, hierarchy. Writes the scene bundle into OUT
@@ -107,13 +107,14 @@ def reconstruct_bag(bag: Path, out: Path, robot: str = "panda", object_name: str
     from soma_ros.core.render import render_splats
     from soma_ros.core.robot import RobotModel
 
-    from soma_ros.training.config import TrainConfig, load_train_config
     from soma_ros.data.dataset import prepare_episode
     from soma_ros.scene.scene_setup import setup_scene, splats_from_points
     from soma_ros.scene.files import save_scene
 
     t0 = time.time()
-    cfg = load_train_config(config) if config else TrainConfig().validate()
+    if config is None:
+        raise ValueError("reconstruct_bag needs the training config whose data and scene sections it follows")
+    cfg = config
     if iters is not None:
         cfg.scene.photometric_iters = int(iters)
     rm = RobotModel.from_config(robot, dtype=torch.float64)

@@ -344,11 +344,10 @@ def _write_bundle(out, splats: Splats, object_name: str, robot: str, views, dt: 
     from soma_ros.core.hierarchy import build_hierarchy
     from soma_ros.core.scene_bundle import CameraSpec, SceneBundle
 
-    from soma_ros.training.config import TrainConfig
     from soma_ros.scene.files import save_scene
 
     obj = load_object_config(object_name)
-    mc = load_model_config(TrainConfig().validate().model, object=obj)
+    mc = load_model_config("cpu", object=obj)  # the default model's hierarchy for this object
     sp = Splats(splats.means.float(), splats.quats.float(), splats.scales.float(), splats.opacities.float(),
                 splats.sh_dc.float(), splats.sh_rest.float(), splats.means.new_full((len(splats),), obj.total_mass / len(splats)).float())
     normal, offset, grav, method = _table_from_capture(sp, views)
@@ -416,7 +415,7 @@ def align_to_capture(file, capture, out, cfg: Optional[AlignConfig] = None, obje
 
 
 def align_to_bag(file, bag, out, cfg: Optional[AlignConfig] = None, object_name: str = "rope", robot: str = "panda",
-                 config: Optional[str] = None, progress: bool = True) -> dict:
+                 config=None, progress: bool = True) -> dict:
     """`soma scene align --bag`: align the scan to the bag's fused masked depth of its set-up frames
     (and refine against those frames' views), then the bag's scene set-up (table, gravity,
     robot -> sim, hierarchy) with the aligned scan as G_0; writes the bundle, align.json and
@@ -429,7 +428,6 @@ def align_to_bag(file, bag, out, cfg: Optional[AlignConfig] = None, object_name:
     from soma_ros.core.ply import load_splats
     from soma_ros.core.robot import RobotModel
 
-    from soma_ros.training.config import TrainConfig, load_train_config
     from soma_ros.data.dataset import prepare_episode
     from soma_ros.scene.scene_setup import episode_views, setup_scene
     from soma_ros.scene.files import save_scene
@@ -438,7 +436,9 @@ def align_to_bag(file, bag, out, cfg: Optional[AlignConfig] = None, object_name:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cfg = (cfg or AlignConfig()).validate()
-    tc = load_train_config(config) if config else TrainConfig().validate()
+    if config is None:
+        raise ValueError("align_to_bag needs the training config whose data and scene sections it follows")
+    tc = config
     rm = RobotModel.from_config(robot, dtype=torch.float64)
     obj = load_object_config(object_name)
     mc = load_model_config(tc.model, object=obj)

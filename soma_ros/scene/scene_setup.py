@@ -48,7 +48,7 @@ from soma_ros.core.scene_bundle import CameraSpec, SceneBundle
 from soma_ros.core.splats import Splats
 
 from soma_ros.scene.capture import CaptureViews, FitConfig, fit_splats
-from soma_ros.training.config import SceneConfig
+from soma_ros.scene.config import SceneConfig
 from soma_ros.data.dataset import EpisodeData
 
 __all__ = [
