@@ -132,14 +132,9 @@ def _cloud(splats):
 
 
 def _variant(base, **kw):
-    from sensor_msgs.msg import PointCloud2
+    from soma_ros.nodes.testing import cloud_variant
 
-    c = PointCloud2(header=base.header, height=base.height, width=base.width, fields=list(base.fields),
-                    is_bigendian=base.is_bigendian, point_step=base.point_step, row_step=base.row_step,
-                    data=bytes(base.data), is_dense=base.is_dense)
-    for k, v in kw.items():
-        setattr(c, k, v)
-    return c
+    return cloud_variant(base, **kw)
 
 
 def bad_inputs(allowed: Path, outside: Path) -> list[tuple[str, dict]]:

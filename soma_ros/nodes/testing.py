@@ -95,3 +95,16 @@ def spin_until(executor, predicate: Callable[[], bool], timeout: float, step: fl
             return True
         executor.spin_once(timeout_sec=step)
     return predicate()
+
+
+def cloud_variant(base, **changes):
+    """A copy of the PointCloud2 ``base`` with some of its fields replaced: the malformed
+    scenes that tests and the fuzz benchmark send to ``/soma/reset``."""
+    from sensor_msgs.msg import PointCloud2
+
+    cloud = PointCloud2(header=base.header, height=base.height, width=base.width, fields=list(base.fields),
+                        is_bigendian=base.is_bigendian, point_step=base.point_step, row_step=base.row_step,
+                        data=bytes(base.data), is_dense=base.is_dense)
+    for name, value in changes.items():
+        setattr(cloud, name, value)
+    return cloud

@@ -196,12 +196,9 @@ def _malformed_clouds():
     base = splats_to_cloud(synthetic_rope(800, center=(0.4, 0.1, TABLE_Z), seed=4), "soma_sim")
 
     def variant(**kw):
-        c = PointCloud2(header=base.header, height=base.height, width=base.width, fields=list(base.fields),
-                        is_bigendian=base.is_bigendian, point_step=base.point_step, row_step=base.row_step,
-                        data=bytes(base.data), is_dense=base.is_dense)
-        for k, v in kw.items():
-            setattr(c, k, v)
-        return c
+        from soma_ros.nodes.testing import cloud_variant
+
+        return cloud_variant(base, **kw)
 
     nan = np.frombuffer(bytes(base.data), np.float32).copy().reshape(800, 16)
     nan[5, 0] = np.nan
