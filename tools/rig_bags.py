@@ -106,6 +106,7 @@ def rewrite_bag(src: Path, dst: Path, form: RigForm = RigForm(), drop: tuple[str
         with Writer(Path(dst), version=9, storage_plugin=plugin) as w:
             conns, kinds = {}, {}
             extra_info = {}
+            source_topics = {c.topic for c in r.connections}
             for c in r.connections:
                 t, kind = new_topic(c.topic)
                 if t is None or t in drop:
@@ -113,7 +114,9 @@ def rewrite_bag(src: Path, dst: Path, form: RigForm = RigForm(), drop: tuple[str
                 mt = "sensor_msgs/msg/CompressedImage" if kind == "compressed" else c.msgtype
                 conns[c.id] = w.add_connection(t, mt, typestore=ts)
                 kinds[c.id] = (t, kind)
-                if form.info_from_depth and c.topic.endswith("/aligned_depth_to_color/image_raw"):
+                has_depth_info = c.topic.replace("/image_raw", "/camera_info") in source_topics
+                if form.info_from_depth and c.topic.endswith("/aligned_depth_to_color/image_raw") \
+                        and not has_depth_info:  # the bag records none of its own: made from the colour one
                     it = t.replace("/image_raw", "/camera_info")
                     if it not in drop:
                         extra_info[c.topic.replace("/aligned_depth_to_color/image_raw", "/color/camera_info")] = \

@@ -92,6 +92,8 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 import torch
 
+from soma_ros.core.config import read_config
+from soma_ros.paths import config_dir
 from soma_ros.core.checkpoint import read_checkpoint, save_checkpoint, load_checkpoint
 from soma_ros.core.effects import EFFECTS
 from soma_ros.core.render import render
@@ -109,7 +111,7 @@ __all__ = ["DiscrepancyConfig", "load_discrepancy_config", "run_discrepancy", "D
 
 DEFAULT_CANDIDATES = ["wind", "linear_drag", "quadratic_drag", "table_friction", "gripper_slip", "mass_scale",
                       "stiffness_scale"]
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "config" / "discrepancy"
+CONFIG_DIR = config_dir() / "discrepancy"
 
 
 @dataclass
@@ -193,15 +195,13 @@ class DiscrepancyConfig:
 
 def load_discrepancy_config(name_or_path: str = "default", overrides: Optional[dict] = None) -> DiscrepancyConfig:
     """config/discrepancy/<name>.yaml or a YAML path -> :class:`DiscrepancyConfig`."""
-    import yaml
-
     p = Path(name_or_path)
     if not p.is_file():
         p = CONFIG_DIR / f"{name_or_path}.yaml"
     if not p.is_file():
         known = sorted(x.stem for x in CONFIG_DIR.glob("*.yaml"))
         raise FileNotFoundError(f"discrepancy config '{name_or_path}' not found (known: {', '.join(known)})")
-    data = yaml.safe_load(p.read_text()) or {}
+    data = read_config(p)
     data.update(overrides or {})
     names = {f.name for f in dataclasses.fields(DiscrepancyConfig)}
     bad = sorted(set(data) - names)

@@ -348,9 +348,9 @@ def test_soma_scene_info_convert_and_export(tmp_path, capsys):
     assert main(["scene", "info", str(bundle)]) == 0 and "300 splats" in capsys.readouterr().out
     back = read_ply(tmp_path / "b.ply")
     assert torch.equal(back.means, read_ply(bundle / "splats.ply").means)
-    assert main(["scene", "convert", str(tmp_path / "std.ply"), str(tmp_path / "c.splat"), "--sh-degree", "3"]) == 1
+    assert main(["scene", "convert", str(tmp_path / "std.ply"), str(tmp_path / "c.splat"), "--sh-degree", "3"]) == 2
     assert "stores SH degree 0" in capsys.readouterr().err
     (tmp_path / "junk.ply").write_bytes(b"junk")
-    assert main(["scene", "info", str(tmp_path / "junk.ply")]) == 1
+    assert main(["scene", "info", str(tmp_path / "junk.ply")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "not a PLY file" in err

@@ -174,7 +174,8 @@ def test_bgr8_and_32fc1_depth_and_tf_extrinsics(world, reference, robot, tmp_pat
     dst = tmp_path / "bgr_tf"
     with AnyReader([bag], default_typestore=ts) as r, Writer(dst, version=9) as w:
         conns = {c.id: w.add_connection(c.topic, c.msgtype, typestore=ts) for c in r.connections}
-        tf = w.add_connection("/tf", "tf2_msgs/msg/TFMessage", typestore=ts)
+        tf = next((conns[c.id] for c in r.connections if c.topic == "/tf"), None)  # the robot's links, if recorded
+        tf = tf or w.add_connection("/tf", "tf2_msgs/msg/TFMessage", typestore=ts)
         TF = ts.types["tf2_msgs/msg/TFMessage"]
         first = True
         for c, stamp, raw in r.messages():
@@ -266,7 +267,7 @@ def _bad_bags(world: Path, d: Path) -> dict[str, tuple[Path, str]]:
         "empty": (rewrite_bag(world, d / "empty", empty=True), "empty"),
         "truncated": (truncate_bag(rewrite_bag(world, d / "truncated"), 0.4), "unreadable bag"),
         "corrupt sqlite3": (corrupt_bag(rewrite_bag(world, d / "corrupt_db3"), 0.0), "unreadable bag"),
-        "corrupt mcap": (corrupt_bag(rewrite_bag(world, d / "corrupt_mcap", RigForm(storage="mcap")), 0.3, 200_000),
+        "corrupt mcap": (corrupt_bag(rewrite_bag(world, d / "corrupt_mcap", RigForm(storage="mcap")), 0.0, 4096),
                          "unreadable bag"),
     }
     shutil.copytree(world, d / "good")
