@@ -187,7 +187,7 @@ def test_soma_eval_cli_reproduces_the_bench_numbers(bench_run, tmp_path):
                str(out / "data" / "rope_tiny"), "--split", "train", "--out", str(tmp_path / "sm"), "--quiet",
                "--no-lpips", "--no-sheets"])
     assert rc == 0 and "lpips" not in json.loads((tmp_path / "sm" / "metrics.json").read_text())["mean"]
-    assert main(["eval", "--checkpoint", "static", "--data", str(out / "data" / "rope_tiny")]) == 1
+    assert main(["eval", "--checkpoint", "static", "--data", str(out / "data" / "rope_tiny")]) == 2
     # --prior-only: the bench's prior_only row (full's kept checkpoint, network off)
     rc = main(["eval", "--checkpoint", str(run), "--prior-only", "--data", str(out / "data" / "rope_tiny"), "--split",
                "test", "--out", str(tmp_path / "prior"), "--quiet"])

@@ -167,14 +167,16 @@ def _tf_matrix(tr) -> np.ndarray:
 
 
 def test_a_world_bag_still_trains_the_same_cameras(world_bag):
-    """The bag reader places the wrist camera on its link as before (the robot's links on /tf
-    change nothing in /tf_static): mount link panda_hand."""
+    """The bag reader places the wrist camera on its robot link, whose pose FK gives, although
+    the bag's /tf also carries the link tree up to the world: mount link panda_hand."""
+    from soma_ros.core.robot import RobotModel
     from soma_ros.data.bags import camera_mount, read_episode
 
     ep = read_episode(world_bag)
-    frame, _ = camera_mount(ep, "cam_wrist")
+    links = RobotModel.from_config("panda").link_names
+    frame, _ = camera_mount(ep, "cam_wrist", robot_links=links)
     assert frame == "panda_hand"
-    assert camera_mount(ep, "cam_front")[0] == "world"
+    assert camera_mount(ep, "cam_front", robot_links=links)[0] == "world"
 
 
 # --------------------------------------------------------------------------- live node
