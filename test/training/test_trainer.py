@@ -540,7 +540,8 @@ def test_the_rod_config_identifies_the_rods_bending_on_a_reference_world_rope(li
     its bending compliance (the rod's, rho A / (4 EI)) is identified from the data like the pairs'."""
     from soma_ros.core.effects.physics import PhysicsPrior, build_layout
     from soma_ros.training.config import load_train_config
-    from soma_ros.scene.files import load_scene, train
+    from soma_ros.scene.files import load_scene
+    from soma_ros.training.train import train
 
     over = _identify_over({"coefficient": "bend", "values": [1.0, 100.0], "episodes": 2})
     cfg = load_train_config("tiny_physics_rod", over)

@@ -176,6 +176,6 @@ def test_bad_inputs_are_one_line_errors(tmp_path, capsys):
                        (["view", "--resim", str(tmp_path)], "no rosbag2 at"),
                        (["view", "--node", "--layers", "splats,bogus"], "unknown layer(s) bogus"),
                        (["view", "--node", "--draw-rate", "0"], "--draw-rate must be > 0")):
-        assert main(args) == 1
+        assert main(args) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("soma view: error:") and what in err[0], err
