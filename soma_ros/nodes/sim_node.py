@@ -29,7 +29,7 @@ checking and binding a scene never stops /joint_states from being taken, and a
 second reset while one runs is answered "busy".
 
 Reset input is untrusted (anyone on the DDS domain can call it; see
-docs/security.md): files are read only inside ``scene_dirs``
+the security section of docs/ros_interface.md): files are read only inside ``scene_dirs``
 (:class:`~soma_ros.core.scene_guard.ScenePathPolicy`), sizes are checked from
 the header or the message before anything is allocated, and the scene must be
 physically plausible beside the starting one (:class:`SceneLimits`). Every published image, depth map, cloud and camera TF
