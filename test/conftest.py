@@ -119,6 +119,20 @@ HEAVY_FIXTURES = {
     "tiny_run", "resim_out", "good_dataset", "clean_run", "bench_run", "trained_run", "two_episodes",
     "world", "reference", "world_bag", "rope_bag", "reference_scene", "guarded", "lift_dataset", "worlds",
     "reports", "bag",
+    "ros_env", "ros_context",  # tests that start ROS nodes or processes
+}
+#: Tests that take more than about 10 s on a 2-core machine without any of those fixtures.
+SLOW_TESTS = {
+    "test_check_arx5_config", "test_check_broken_urdf",
+    "test_a_clamped_rod_droops_as_an_euler_bernoulli_cantilever_and_rests_where_it_lies",
+    "test_a_tilting_grip_turns_the_held_section_about_the_closing_axis_as_a_rotational_spring",
+    "test_the_live_engine_runs_a_physics_model_exact_at_rest_and_lifts_a_grasped_rope",
+    "test_the_newton_solver_makes_a_stiff_rope_stiff_and_its_bending_compliance_matter",
+    "test_build_command_is_idempotent", "test_long_rollout_13k_random_weights_is_finite_and_bounded",
+    "test_real_capture_holdout", "test_gripper_out_of_reach_moves_nothing_and_through_the_rope_moves_it",
+    "test_passive_rule_is_a_live_option_and_stops_the_root_after_a_push",
+    "test_settling_makes_a_moved_object_still_again_and_only_with_the_robot_away",
+    "test_efforts_feel_a_heavier_rope_but_not_a_softer_one", "test_wind_onset_starts_the_wind_inside_the_carry",
 }
 
 
@@ -128,5 +142,5 @@ def pytest_configure(config):
 
 def pytest_collection_modifyitems(config, items):
     for item in items:
-        if HEAVY_FIXTURES & set(getattr(item, "fixturenames", ())):
+        if HEAVY_FIXTURES & set(getattr(item, "fixturenames", ())) or item.originalname in SLOW_TESTS:
             item.add_marker(pytest.mark.slow)
