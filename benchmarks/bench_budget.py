@@ -56,7 +56,8 @@ def _setup(args):
 
 def _config(bench, obj: str, iterations: Optional[int] = None, overrides: Optional[dict] = None):
     from soma_ros.evaluation.accuracy import variant_train_config
-    from soma_ros.training.config import _merge, load_train_config
+    from soma_ros.core.config import merge_config as _merge
+    from soma_ros.training.config import load_train_config
 
     cfg = variant_train_config(bench, obj, "full")
     over = dict(overrides or {})

@@ -32,7 +32,7 @@ from typing import Any, Mapping, Optional, Union
 
 import yaml
 
-from soma_ros.core.config import ConfigError, from_dict, to_dict
+from soma_ros.core.config import ConfigError, from_dict, merge_config, read_config, to_dict
 
 from soma_ros.data.config import DataConfig, TopicNames
 from soma_ros.scene.config import SceneConfig
@@ -432,7 +432,7 @@ class TrainConfig:
         base = load_model_config(self.model, object=self.object)
         if not self.model_overrides:
             return base
-        return ModelConfig.from_dict(_merge(base.to_dict(), self.model_overrides), "model_overrides.")
+        return ModelConfig.from_dict(merge_config(base.to_dict(), self.model_overrides), "model_overrides.")
 
 
 def load_train_config(name_or_path: Union[str, Path, Mapping[str, Any]], overrides: Optional[Mapping] = None) -> TrainConfig:
@@ -450,24 +450,9 @@ def load_train_config(name_or_path: Union[str, Path, Mapping[str, Any]], overrid
                 p = resolve_config(f"train/{name_or_path}")
             except FileNotFoundError:
                 p = resolve_config(name_or_path)
-        try:
-            data = yaml.safe_load(p.read_text())
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{p}: invalid YAML: {' '.join(str(exc).split())}") from None
-        if not isinstance(data, dict):
-            raise ConfigError(f"{p}: expected a mapping at the top level")
+        data = read_config(p)  # with its base applied
         data.setdefault("name", p.stem)
         where = f"{p.name}: "
     if overrides:
-        data = _merge(data, overrides)
+        data = merge_config(data, overrides)
     return TrainConfig.from_dict(data, where)
-
-
-def _merge(base: Mapping, over: Mapping) -> dict:
-    out = dict(base)
-    for k, v in over.items():
-        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
-            out[k] = _merge(out[k], v)
-        else:
-            out[k] = v
-    return out

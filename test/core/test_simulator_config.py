@@ -104,3 +104,18 @@ def test_a_missing_or_looping_base_is_one_clear_error(tmp_path):
         read_config(tmp_path / "a.yaml")
     with pytest.raises(ConfigError, match="base 'nowhere' not found"):
         read_config(tmp_path / "c.yaml")
+
+
+def test_a_training_config_variant_is_its_base_plus_what_it_names(tmp_path):
+    import yaml
+
+    from soma_ros.paths import resolve_config
+    from soma_ros.training.config import load_train_config
+
+    base = resolve_config("train/tiny")
+    (tmp_path / "tiny.yaml").write_text(base.read_text())
+    (tmp_path / "longer.yaml").write_text(yaml.safe_dump({"base": "tiny", "schedule": {"iters_per_epoch": 7}}))
+    a, b = load_train_config(tmp_path / "tiny.yaml"), load_train_config(tmp_path / "longer.yaml")
+    assert b.schedule.iters_per_epoch == 7 and b.name == "longer"
+    b.schedule.iters_per_epoch, b.name = a.schedule.iters_per_epoch, a.name
+    assert b.to_dict() == a.to_dict()
