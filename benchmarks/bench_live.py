@@ -497,17 +497,30 @@ class _Bench:
 
 
 class CpuMeter:
-    """CPU use over a window: the node process (with its threads), this process, and the rest of
-    the machine (other users of the shared cores), in cores (1.0 = one core busy)."""
+    """CPU use over a window: the node process (with its threads and its child processes, such as
+    the render process), this process, and the rest of the machine (other users of the shared
+    cores), in cores (1.0 = one core busy)."""
 
     def __init__(self, node_pid: int) -> None:
         import psutil
 
         self.node = psutil.Process(node_pid)
+        self.kids = self.node.children(recursive=True)
         self.me = psutil.Process()
         self.t0 = time.monotonic()
-        self.n0, self.m0 = self._cpu(self.node), self._cpu(self.me)
+        self.n0, self.m0 = self._tree(), self._cpu(self.me)
         self.s0 = psutil.cpu_times()
+
+    def _tree(self) -> float:
+        import psutil
+
+        total = self._cpu(self.node)
+        for k in self.kids:
+            try:
+                total += self._cpu(k)
+            except psutil.Error:
+                pass
+        return total
 
     @staticmethod
     def _cpu(p) -> float:
@@ -520,7 +533,7 @@ class CpuMeter:
         dt = time.monotonic() - self.t0
         s1 = psutil.cpu_times()
         busy = (sum(s1) - s1.idle - getattr(s1, "iowait", 0.0)) - (sum(self.s0) - self.s0.idle - getattr(self.s0, "iowait", 0.0))
-        node = (self._cpu(self.node) - self.n0) / dt
+        node = (self._tree() - self.n0) / dt
         me = (self._cpu(self.me) - self.m0) / dt
         return {"node_cores": node, "probe_cores": me, "others_cores": max(0.0, busy / dt - node - me),
                 "cores": os.cpu_count()}

@@ -145,6 +145,9 @@ class SomaSimNode(Node):
         p("sim_frame", "soma_sim", ParameterDescriptor(description="frame of the simulated splats (identity to the scene's frame)"))
         p("topic_prefix", "/soma", ParameterDescriptor(description="prefix of published topics and the reset service"))
         p("torch_threads", 1, ParameterDescriptor(description="torch intra-op threads (1 beside other work)"))
+        p("render_process", True, ParameterDescriptor(
+            description="render the images in a child process (CPU device): the physics step then keeps the "
+                        "interpreter to itself; false renders in a thread of the node", read_only=True))
         p("publish_robot_tf", True, ParameterDescriptor(
             description="publish the robot's links on /tf and /robot_description as robot_state_publisher does "
                         "(false when the real robot's robot_state_publisher runs beside the node)"))
@@ -248,6 +251,26 @@ class SomaSimNode(Node):
             f"{f' x {self.render_scale:g}' if self.render_scale != 1.0 else ''}, renderer "
             f"{_renderer_name()}, torch threads {torch.get_num_threads()})")
 
+        # the renderer: a child process on CPU (soma_ros.live_render), else a thread of this node
+        self._renderer = None
+        self._render_template = None
+        if self.render_rate_hz > 0 and bool(gp("render_process")) and self.live.state.means.device.type == "cpu":
+            from ..live_render import RenderProcess, RenderProcessError
+
+            c0 = self.live.cameras[0]
+            rig = self.live.camera_rig(self.live.neutral_joint_vec())
+            try:
+                self._renderer = RenderProcess(rig.width, rig.height, len(rig), dtype=self.live.state.means.dtype,
+                                               torch_threads=int(gp("torch_threads")))
+                self._set_render_scene(self.live.template)
+                self.get_logger().info(f"rendering in process {self._renderer.pid} ({len(rig)} x "
+                                       f"{rig.width}x{rig.height}, {c0.name} first)")
+            except (RenderProcessError, OSError) as exc:
+                self.get_logger().error(f"render process did not start ({exc}): rendering in the node")
+                if self._renderer is not None:
+                    self._renderer.close()
+                self._renderer = None
+
         self.pub_splats = self.create_publisher(PointCloud2, f"{prefix}/splats", SENSOR_OUT_QOS)
         self.pub_status = self.create_publisher(SimStatus, f"{prefix}/status", STATUS_QOS)
         self.pub_img, self.pub_depth, self.pub_info = {}, {}, {}
@@ -308,6 +331,8 @@ class SomaSimNode(Node):
                 self.get_logger().warn(f"thread {loop.name} did not stop within {timeout:g} s")
         if self._reset_thread.is_alive():
             self._reset_thread.join(timeout=max(0.0, deadline - time.monotonic()))
+        if self._renderer is not None:
+            self._renderer.close(timeout_s=max(0.2, deadline - time.monotonic()))
 
     def destroy_node(self) -> None:
         self._stopping.set()
@@ -492,18 +517,45 @@ class SomaSimNode(Node):
         if frame.joint_vec is None and any(c.mount_link for c in self.live.cameras):
             return  # mounted cameras need a joint state
         t0, c0 = time.perf_counter(), time.thread_time()
-        out, cams = self.live.render(frame.state, frame.template, frame.joint_vec)
+        rgb, depth, cams, child_cpu_ms = self._render(frame)
         self._render_ms = (time.perf_counter() - t0) * 1e3
-        self._render_cpu_ms = (time.thread_time() - c0) * 1e3
+        self._render_cpu_ms = (time.thread_time() - c0) * 1e3 + child_cpu_ms
         stamp = stamp_from_ns(frame.stamp_ns)
-        rgb = (out.rgb.clamp(0, 1) * 255).round().to(dtype=__import__("torch").uint8).cpu().numpy()
-        depth = out.depth.cpu().numpy()
         for i, c in enumerate(self.live.cameras):
             frame = camera_frame_id(self.sim_frame, c.name)
             self.pub_img[c.name].publish(image_rgb8(rgb[i], frame, stamp))
             self.pub_depth[c.name].publish(image_depth32(depth[i], frame, stamp))
             self.pub_info[c.name].publish(camera_info(cams.K[i].cpu().numpy(), cams.width, cams.height, frame, stamp))
         self._image_rate.tick()
+
+    def _set_render_scene(self, template) -> None:
+        import torch
+
+        dtype = self.live.state.means.dtype
+        self._renderer.set_scene(template.colors().to(dtype), template.opacities.to(dtype))
+        self._render_template = template
+
+    def _render(self, frame):
+        """(rgb uint8 [C, H, W, 3], depth float32 [C, H, W], cameras, the render process's CPU ms) of
+        one step's state: in the render process, or in this thread without one (or after it failed)."""
+        import torch
+
+        if self._renderer is not None:
+            from ..live_render import RenderProcessError
+
+            try:
+                if frame.template is not self._render_template:  # a reset brought a new scene
+                    self._set_render_scene(frame.template)
+                cams = self.live.camera_rig(frame.joint_vec)
+                res = self._renderer.render(frame.state.means, frame.state.covs, cams)
+                return res.rgb, res.depth, cams, res.cpu_ms
+            except RenderProcessError as exc:
+                self.get_logger().error(f"{exc}: rendering in the node from now on")
+                self._renderer.close(timeout_s=0.5)
+                self._renderer = None
+        out, cams = self.live.render(frame.state, frame.template, frame.joint_vec)
+        rgb = (out.rgb.clamp(0, 1) * 255).round().to(dtype=torch.uint8).cpu().numpy()
+        return rgb, out.depth.cpu().numpy(), cams, 0.0
 
     def _on_splats(self) -> None:
         try:
