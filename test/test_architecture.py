@@ -146,7 +146,7 @@ LAYERS = [
     {"training"},
     {"evaluation"},
     {"discrepancy"},
-    {"live", "nodes", "viewer", "commands", "cli", "demo", "demo_report"},
+    {"live", "live_render", "nodes", "viewer", "commands", "cli", "demo", "demo_report"},
 ]
 #: Modules of the package root that sit below every layer (no soma_ros imports of their own).
 FOUNDATION = {"soma_ros", "soma_ros.paths", "soma_ros.bagtypes"}
