@@ -49,7 +49,7 @@ from typing import Any, Callable, Optional, Sequence
 import torch
 import yaml
 
-from soma_ros.core.config import ConfigError, from_dict, load_object_config, to_dict
+from soma_ros.core.config import ConfigError, from_dict, load_object_config, read_config, to_dict
 from soma_ros.core.spring_mass import SpringMassConfig
 from soma_ros.paths import resolve_config
 
@@ -161,9 +161,7 @@ def load_bench_config(preset: str | Path) -> BenchConfig:
     p = Path(preset)
     if not (p.suffix in (".yaml", ".yml") and p.is_file()):
         p = resolve_config(f"eval/{preset}")
-    data = yaml.safe_load(p.read_text())
-    if not isinstance(data, dict):
-        raise ConfigError(f"{p}: expected a mapping")
+    data = read_config(p)  # with its base applied
     data.setdefault("name", p.stem)
     return from_dict(BenchConfig, data, f"{p.name}: ").validate()
 

@@ -162,7 +162,7 @@ def load_fit_config(name_or_path: Union[str, Path], overrides: Optional[dict] = 
     unknown keys and bad types refused; ``overrides`` (a mapping) applied on top."""
     import yaml
 
-    from soma_ros.core.config import ConfigError, from_dict
+    from soma_ros.core.config import ConfigError, from_dict, read_config
     from soma_ros.paths import resolve_config
 
     p = Path(name_or_path)
@@ -172,12 +172,7 @@ def load_fit_config(name_or_path: Union[str, Path], overrides: Optional[dict] = 
         except FileNotFoundError:
             raise FileNotFoundError(f"fit preset not found: {name_or_path} (presets: {', '.join(FIT_PRESETS)}, "
                                     "or a .yaml path)") from None
-    try:
-        data = yaml.safe_load(p.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{p}: invalid YAML: {exc}") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"{p}: expected a mapping at the top level")
+    data = read_config(p)  # with its base applied
     data = {**data, **(overrides or {})}
     for k in ("history", "best"):
         if k in data:

@@ -119,3 +119,33 @@ def test_a_training_config_variant_is_its_base_plus_what_it_names(tmp_path):
     assert b.schedule.iters_per_epoch == 7 and b.name == "longer"
     b.schedule.iters_per_epoch, b.name = a.schedule.iters_per_epoch, a.name
     assert b.to_dict() == a.to_dict()
+
+
+#: shipped variants and their bases (config/<family>/<variant>.yaml says ``base: <base>``)
+SHIPPED_VARIANTS = [("discrepancy", "coarse", "default"), ("discrepancy", "fast", "default"),
+                    ("discrepancy", "physics", "default"), ("reconstruct", "quality", "cpu"),
+                    ("eval", "tiny_mlp", "tiny")]
+
+
+@pytest.mark.parametrize("family,variant,base", SHIPPED_VARIANTS)
+def test_shipped_variants_name_their_base_and_load(family, variant, base):
+    """Each shipped variant names its base, writes fewer keys than the base, and loads through its
+    family's loader (unknown keys refused there) to a config that differs from the base's."""
+    import yaml
+
+    from soma_ros.core.config import to_dict
+    from soma_ros.discrepancy.workflow import load_discrepancy_config
+    from soma_ros.evaluation.accuracy import load_bench_config
+    from soma_ros.paths import resolve_config
+    from soma_ros.scene.splat_fit import load_fit_config
+
+    raw = yaml.safe_load(resolve_config(f"{family}/{variant}").read_text())
+    assert raw.get("base") == base
+    assert len(raw) < len(yaml.safe_load(resolve_config(f"{family}/{base}").read_text()))
+    load = {"discrepancy": load_discrepancy_config, "reconstruct": load_fit_config, "eval": load_bench_config}[family]
+    a, b = to_dict(load(base)), to_dict(load(variant))
+    a.pop("name", None), b.pop("name", None)
+    assert a != b
+    for key, value in raw.items():  # what the variant names is what it gets
+        if key != "base" and not isinstance(value, dict):
+            assert b[key] == value, key
