@@ -204,11 +204,6 @@ class DynamicsConfig:
     passive (an open gripper's coupling drags, it does not carry, and exempting it let the
     network lift a released rope under the hovering gripper: README, "The live node").
 
-    ``direct_splats`` (off in every shipped config): without a splat head the splats follow their
-    fine cluster rigidly; with it, the direct effects' acceleration in excess of the cluster's also
-    moves each splat within its cluster (:mod:`.simulator`, "Direct effects"). Measured on the rod
-    prior: a lifted rope's long arm then hangs as the prior alone
-    has it (up to 6 cm lower than with rigid fine clusters), but the held-out depth RMSE gets worse.
     """
 
     accel_scale: float = 9.81
@@ -220,7 +215,6 @@ class DynamicsConfig:
     passive_contact_m: float = 0.01
     passive_exempt: list[str] = field(default_factory=list)
     passive_exempt_closed: bool = False
-    direct_splats: bool = False
 
     def validate(self, where: str = "dynamics") -> None:
         for name in ("accel_scale", "velocity_scale", "max_speed", "max_log_stretch", "residual_factor",
@@ -233,8 +227,6 @@ class DynamicsConfig:
             raise ConfigError(f"{where}.passive_friction: must be None (off) or finite and >= 0, got {pf}")
         if not all(isinstance(k, str) and k for k in self.passive_exempt):
             raise ConfigError(f"{where}.passive_exempt: must be a list of effect keys, got {self.passive_exempt!r}")
-        if not isinstance(self.direct_splats, bool):
-            raise ConfigError(f"{where}.direct_splats: must be true or false, got {self.direct_splats!r}")
         if not isinstance(self.passive_exempt_closed, bool):
             raise ConfigError(f"{where}.passive_exempt_closed: must be true or false, got {self.passive_exempt_closed!r}")
 

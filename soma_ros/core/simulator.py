@@ -50,9 +50,7 @@ nothing is counted twice: uniform direct wind translates the object rigidly
 (a network whose outputs do not change: d_root after n steps from rest =
 a dt^2 n (n + 1) / 2, semi-implicit Euler; -> 1/2 a (n dt)^2), and a force on
 some splats moves their clusters relative to the rest. The splat level gets
-its excess only where the network runs on it (``gnn.splat_head``) or where
-``dynamics.direct_splats`` is set (then the direct acceleration alone, bounded as on the
-cluster levels); otherwise splats follow their fine cluster, which only translates and turns
+its excess only where the network runs on it (``gnn.splat_head``); otherwise splats follow their fine cluster, which only translates and turns
 as the network says: a direct term that bends the object within a fine cluster (the physics
 prior's rod) is realised only as far as the clusters' translations follow it. Reference effects (gravity, support) cannot be direct
 (their response is the learned one, subtracted at rest). With no direct effect
@@ -831,13 +829,6 @@ class Simulator(nn.Module):
                 c_new = new_pos[l + 1].index_select(0, p) + _gather_matvec(new_def[l + 1], p, ep.offsets[l])
             new_carry[l] = c_new
             if l not in sim_levels:  # splats without a head: carried rigidly-affinely by their cluster
-                if a_direct is not None and dyn_cfg.direct_splats and reference is not None and l < L:
-                    # ...and moved within it by the direct effects' excess over it (residual physics only)
-                    a_d = a_direct[l] - a_direct[l + 1].index_select(0, h.parents[l])
-                    v_new = _clamp_norm((state.resid[l] - state.resid_prev[l]) / dt + dt * a_d, dyn_cfg.max_speed)
-                    new_resid[l] = _clamp_norm(state.resid[l] + dt * v_new, ep.residual_limit[l])
-                    new_pos[l] = c_new + new_resid[l]
-                    continue
                 new_resid[l] = state.resid[l]
                 new_pos[l] = c_new
                 continue
