@@ -354,6 +354,11 @@ def _default_effects() -> list[EffectSpec]:
     return [EffectSpec("gravity"), EffectSpec("support"), EffectSpec("robot")]
 
 
+
+#: options removed from the model config, with the value that older checkpoints store (and that
+#: a load accepts and drops): (section, key) -> the value it always had in a shipped config
+RETIRED_MODEL_KEYS: dict[tuple[str, str], Any] = {("dynamics", "direct_splats"): False}
+
 @dataclass
 class ModelConfig:
     """The whole simulator configuration (see module docstring)."""
@@ -390,6 +395,13 @@ class ModelConfig:
     @staticmethod
     def from_dict(data: Mapping[str, Any], where: str = "") -> "ModelConfig":
         data = dict(data)
+        for (section, key), off in RETIRED_MODEL_KEYS.items():
+            sub = data.get(section)
+            if isinstance(sub, Mapping) and key in sub:
+                if sub[key] != off:
+                    raise ConfigError(f"{where}{section}.{key}: this option was removed (only {off!r} is accepted, "
+                                      f"as older checkpoints store it)")
+                data[section] = {k: v for k, v in sub.items() if k != key}
         effects = data.pop("effects", None)
         cfg = from_dict(ModelConfig, data, where)
         if effects is not None:

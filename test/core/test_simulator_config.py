@@ -149,3 +149,15 @@ def test_shipped_variants_name_their_base_and_load(family, variant, base):
     for key, value in raw.items():  # what the variant names is what it gets
         if key != "base" and not isinstance(value, dict):
             assert b[key] == value, key
+
+
+def test_a_checkpoint_written_with_a_retired_option_at_its_old_value_loads():
+    """Older checkpoints store ``dynamics.direct_splats: false``; they load, and a true one is refused."""
+    from soma_ros.core.config import ConfigError, ModelConfig, load_model_config
+
+    d = load_model_config("cpu").to_dict()
+    d["dynamics"]["direct_splats"] = False
+    assert ModelConfig.from_dict(d).to_dict() == load_model_config("cpu").to_dict()
+    d["dynamics"]["direct_splats"] = True
+    with pytest.raises(ConfigError, match="direct_splats: this option was removed"):
+        ModelConfig.from_dict(d)
