@@ -107,7 +107,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     import psutil
 
-    from benchmarks.bench_live import Poser, _Bench, load_line, machine_line
+    from benchmarks.bench_live import CpuMeter, Poser, _Bench, load_line, machine_line
     from soma_ros.core.scenes import write_untrained_run
     from soma_ros.live import load_live
 
@@ -128,7 +128,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         b.started(hover, ("status",))
         b.probe.hold(hover, lambda: False, 10.0)  # warm up
-        node_ps = psutil.Process(b.node.proc.pid)
         for r in range(args.rounds):
             for with_viewer in (False, True):
                 if with_viewer:
@@ -136,9 +135,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                     b.probe.hold(hover, lambda: False, 10.0)  # it subscribes and draws its first frames
                     view_ps = psutil.Process(viewer.pid)
                     view_ps.cpu_percent(None)
-                node_ps.cpu_percent(None)
+                meter = CpuMeter(b.node.proc.pid)  # the node with its render process
                 rate, _ = _steps_over(b, hover, args.seconds)
-                cpu_node = node_ps.cpu_percent(None) / 100.0
+                cpu_node = meter.stop()["node_cores"]
                 cpu_view = view_ps.cpu_percent(None) / 100.0 if with_viewer else 0.0
                 rows.append((with_viewer, rate, cpu_node, cpu_view, os.getloadavg()[0]))
                 print(f"round {r + 1} {'viewer   ' if with_viewer else 'no viewer'}: node {rate:6.2f} steps/s, "
