@@ -141,7 +141,7 @@ def test_network_contribution_is_zero_for_the_priors_and_its_penalty_pulls_it_ba
         for prm in sim.gnn.parameters():
             if prm.grad is not None:
                 prm -= 1e-3 * prm.grad / prm.grad.norm().clamp_min(1e-30)
-    assert float(contribution()) < float(c0)
+    assert float(contribution().detach()) < float(c0.detach())
     with pytest.raises(ConfigError, match="network_weight"):
         load_train_config("tiny", {"loss": {"network_weight": -1.0}})
 
