@@ -291,6 +291,11 @@ class SimState:
     #: what effects carry from one step to the next, by effect key (``EffectContext.state_in`` /
     #: ``state_out``; e.g. the physics prior's grasp: which nodes the fingers hold, at which offsets)
     aux: dict = field(default_factory=dict)
+    #: the network's contribution to the step that made this state (scalar, differentiable): the mean
+    #: over the levels it runs on of the mean over their nodes of |output - at-rest output|^2 (the 14
+    #: head numbers: the residual acceleration in units of ``dynamics.accel_scale``, the deformation's
+    #: raw quaternion and log-scale numbers; 0 = the physical terms alone). None: no network ran
+    network_sq: Optional[torch.Tensor] = None
 
     @property
     def num_levels(self) -> int:
@@ -819,6 +824,7 @@ class Simulator(nn.Module):
         dyn_edges = list(state.dyn_edges) + [None] * (nl - len(state.dyn_edges))
         dyn_step = list(state.dyn_step) + [state.step] * (nl - len(state.dyn_step))
         sim_levels = self.sim_levels
+        net_sq: list[torch.Tensor] = []  # the network's contribution per level (SimState.network_sq)
 
         for l in range(L, -1, -1):
             # where the anchor carries each node at t+1
@@ -855,6 +861,8 @@ class Simulator(nn.Module):
                     out = self.gnn.forward_splats(nodes, latents[1].index_select(0, h.parents[0]))
             raw[l] = out
             delta = torch.zeros_like(out) if reference is None else out - reference[l]
+            if self.network_enabled and reference is not None:
+                net_sq.append((delta * delta).sum(-1).mean())
             # translation: residual velocity and offset, bounded
             acc = dyn_cfg.accel_scale * delta[:, :3]
             a_d = None
@@ -906,6 +914,7 @@ class Simulator(nn.Module):
             control_points=None if action is None else action.control_points.to(new_pos[0]),
             dyn_edges=dyn_edges,
             dyn_step=dyn_step,
+            network_sq=torch.stack(net_sq).mean() if net_sq else None,
         )
         nxt.covs, nxt.quats = self._splat_shape(new_def, nxt.rot, ep)
         return nxt, raw

@@ -66,7 +66,11 @@ class LossConfig:
     robot pixels excluded -- so splats rendered where the camera sees the table cost too
     + ``silhouette_weight`` * rendered alpha vs object mask off the object
     + ``points_weight`` * mean distance observed object point -> nearest splat (m)
-    (see :func:`soma_ros.training.train.frame_terms`).
+    (see :func:`soma_ros.training.train.frame_terms`)
+    + ``network_weight`` * the network's mean squared contribution over the rollout's steps
+    (:attr:`~soma_ros.core.simulator.SimState.network_sq`: |output - at-rest output|^2 per node,
+    the residual acceleration in units of ``dynamics.accel_scale``): a pull towards the physical
+    terms alone, so that the network departs from them only where the data's gradient outweighs it.
 
     ``camera_reduce``: "camera" = each camera's image loss on its own object pixels,
     then the mean over cameras (the paper sums L_img over images; a camera where the
@@ -88,6 +92,7 @@ class LossConfig:
     depth_region: str = "object"
     points_weight: float = 0.0
     points_max: int = 1000
+    network_weight: float = 0.0
 
     def validate(self, where: str = "loss") -> None:
         if not 0.0 <= self.lam <= 1.0:
@@ -102,8 +107,10 @@ class LossConfig:
             raise ConfigError(f"{where}.depth_region: one of object, scored; got {self.depth_region!r}")
         if self.camera_reduce not in ("camera", "pixel"):
             raise ConfigError(f"{where}.camera_reduce: one of camera, pixel; got {self.camera_reduce!r}")
-        if min(self.momentum_weight, self.depth_weight, self.silhouette_weight, self.points_weight) < 0:
-            raise ConfigError(f"{where}: momentum_weight and depth_weight must be >= 0")
+        if min(self.momentum_weight, self.depth_weight, self.silhouette_weight, self.points_weight,
+               self.network_weight) < 0:
+            raise ConfigError(f"{where}: momentum_weight, depth_weight, silhouette_weight, points_weight and "
+                              "network_weight must be >= 0")
 
 
 @dataclass

@@ -18,7 +18,7 @@ that episode's initial state (G_0 aligned to its first frame, see
 every predicted state in every camera and compare with the recorded frame:
 
     L = mean_{frames, cameras} [lam masked-L2 + (1 - lam) D-SSIM](object pixels, robot pixels excluded)
-        + w_mom L_mom / M^2 + w_depth masked-L1(depth)
+        + w_mom L_mom / M^2 + w_depth masked-L1(depth) + w_net mean_steps |network output|^2
 
 then Adam with the gradient norm clipped, in two parameter groups with their own learning rate and
 warm-up (:func:`param_groups`: the network, the physical terms). The temporal schedule is the
@@ -106,7 +106,7 @@ __all__ = [
 TRAIN_STATE = "train_state.pt"
 TRAIN_STATE_FORMAT = "soma_ros.train_state/1"
 LOG_COLUMNS = ["kind", "iteration", "epoch", "stage", "stride", "steps", "episode", "loss", "img", "silhouette",
-               "depth", "points", "momentum", "grad_norm", "lr", "seconds", "follow"]
+               "depth", "points", "momentum", "grad_norm", "lr", "seconds", "follow", "network"]
 
 
 # --------------------------------------------------------------------------- distribution
@@ -500,7 +500,7 @@ def _scene_ctx(bundle: SceneBundle, dt: float, device, dtype) -> SceneContext:
     return SceneContext(base.gravity, base.plane_normal, base.plane_offset, dt).to(device=device, dtype=dtype)
 
 
-LOSS_TERMS = ("img", "silhouette", "depth", "points", "momentum")
+LOSS_TERMS = ("img", "silhouette", "depth", "points", "momentum", "network")
 
 
 def frame_terms(sim_state: SimState, colors: torch.Tensor, opacities: torch.Tensor, ep: EpisodeData, t: int,
@@ -587,9 +587,13 @@ def observed_points(ep: EpisodeData, t: int, max_points: int) -> torch.Tensor:
 
 
 def total_loss(terms: dict[str, torch.Tensor], cfg: TrainConfig) -> torch.Tensor:
+    """The weighted sum of the loss terms (``network``: the network's contribution, 0 if absent)."""
     lc = cfg.loss
-    return (terms["img"] + lc.silhouette_weight * terms["silhouette"] + lc.depth_weight * terms["depth"]
+    loss = (terms["img"] + lc.silhouette_weight * terms["silhouette"] + lc.depth_weight * terms["depth"]
             + lc.points_weight * terms["points"] + lc.momentum_weight * terms["momentum"])
+    if lc.network_weight > 0 and "network" in terms:
+        loss = loss + lc.network_weight * terms["network"]
+    return loss
 
 
 class RolloutLoss(nn.Module):
@@ -619,9 +623,12 @@ class RolloutLoss(nn.Module):
         else:
             state = sim.init_state(sp, ctx)
         sums = {k: state.means.new_zeros(()) for k in LOSS_TERMS}
+        net_sq = state.means.new_zeros(())  # the network's contribution, summed over every step with gradients
         sup = set(plan.loss_frames)
         for t in plan.frames:
             state = sim.step(state, ep.action(t, dt_, dev))
+            if cfg.loss.network_weight > 0 and state.network_sq is not None:
+                net_sq = net_sq + state.network_sq
             if t not in sup:
                 continue
             for k, v in frame_terms(state, colors, opac, ep, t, cfg, dev, plane=self.plane).items():
@@ -630,6 +637,7 @@ class RolloutLoss(nn.Module):
                 sums["momentum"] = sums["momentum"] + sim.momentum_loss(state) / (total_mass * total_mass)
         n = max(1, len(sup))
         terms = {k: v / n for k, v in sums.items()}
+        terms["network"] = net_sq / max(1, len(plan.frames))
         loss = total_loss(terms, cfg)
         if not loss.requires_grad:  # e.g. the gripper never reaches the object: no gradient, keep ranks in step
             loss = loss + sum(p.sum() for p in sim.parameters() if p.requires_grad) * 0.0

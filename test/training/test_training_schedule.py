@@ -100,6 +100,52 @@ def test_zero_init_network_still_learns():
     assert sum(len(v) for v in groups.values()) == len(list(sim.parameters()))
 
 
+def test_network_contribution_is_zero_for_the_priors_and_its_penalty_pulls_it_back():
+    """``SimState.network_sq`` (``loss.network_weight``'s term): exactly 0 on every step of the
+    zero-initialised network, None with the network off, > 0 for a network whose output is not zero;
+    its gradient reaches the decoder's last layer, and a step down it shrinks the contribution."""
+    from soma_ros.training.config import ConfigError, load_train_config
+    from soma_ros.training.train import total_loss
+
+    _, states = _grasp_rollout(_tiny_sim())
+    assert all(s.network_sq is not None and float(s.network_sq) == 0.0 for s in states)
+    _, off = _grasp_rollout(_tiny_sim().set_network(False))
+    assert all(s.network_sq is None for s in off)
+
+    sim = _tiny_sim(out_init_scale=1.0).train()
+    sp = synthetic_rope(400, seed=1, center=(0.0, 0.0, 0.0))
+    end = sp.means[sp.means[:, 0] > 0.12].mean(0)
+    cp = end + 0.01 * torch.randn(16, 3, generator=torch.Generator().manual_seed(1))
+
+    def contribution():
+        s = sim.init_state(sp, SceneContext.table())
+        total = s.means.new_zeros(())
+        for i in range(6):
+            s = sim.step(s, RobotAction(cp + torch.tensor([0.0, 0.0, 0.004 * i]), 0.0))
+            total = total + s.network_sq
+        return total / 6
+
+    c0 = contribution()
+    assert float(c0.detach()) > 0
+    cfg = load_train_config("tiny", {"loss": {"network_weight": 10.0}})
+    z = c0.new_zeros(())
+    terms = {"img": z, "silhouette": z, "depth": z, "points": z, "momentum": z, "network": c0}
+    loss = total_loss(terms, cfg)
+    assert float(loss.detach()) == pytest.approx(10.0 * float(c0.detach()))
+    assert float(total_loss({k: v for k, v in terms.items() if k != "network"}, cfg)) == 0.0  # validation: no term
+    sim.zero_grad(set_to_none=True)
+    loss.backward()
+    last = sim.gnn.decoder.last.weight
+    assert last.grad is not None and float(last.grad.abs().max()) > 0
+    with torch.no_grad():
+        for prm in sim.gnn.parameters():
+            if prm.grad is not None:
+                prm -= 1e-3 * prm.grad / prm.grad.norm().clamp_min(1e-30)
+    assert float(contribution().detach()) < float(c0.detach())
+    with pytest.raises(ConfigError, match="network_weight"):
+        load_train_config("tiny", {"loss": {"network_weight": -1.0}})
+
+
 def test_parameter_groups_learning_rates_and_warmup():
     from soma_ros.training.config import ConfigError, load_train_config
     from soma_ros.training.train import lr_at, make_optimizer
