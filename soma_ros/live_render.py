@@ -1,11 +1,13 @@
 """Rendering in a child process, fed through shared memory, for the live node.
 
-Why a process and not a thread: the physics step is hundreds of small torch ops, and
-torch hands the GIL back at every op. A render thread in the same process takes it at
-each of those hand-overs, so both threads wait on each other: on a 2-core machine a
-13,000-splat step took 2.8x its time alone inside the node with three cameras rendering
-beside it (``python -m benchmarks.bench_live --only rates --cameras 3``). A render in
-its own process has its own interpreter and shares nothing but memory with the step.
+Why: the physics step is hundreds of small torch ops, and torch hands the GIL back
+at every op; a render thread in the same process competes for it. A render in its own
+process has its own interpreter and shares nothing but memory with the step. Measured
+on a quiet 2-core AMD EPYC (13,000 splats, three 320x240 cameras,
+``python -m benchmarks.bench_live --only rates --cameras 3``), it did not change the
+node's sustained rates (16.1 against 16.5 steps/s, 9.3 image sets/s both): the step's
+wait inside the node is not the render thread's. It is therefore off by default
+(``render_process`` parameter of the node).
 
 :class:`RenderProcess` owns one child process (``spawn``: nothing of the parent's
 threads, ROS context or locks is inherited) and a set of shared tensors:

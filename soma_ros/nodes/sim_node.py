@@ -145,9 +145,9 @@ class SomaSimNode(Node):
         p("sim_frame", "soma_sim", ParameterDescriptor(description="frame of the simulated splats (identity to the scene's frame)"))
         p("topic_prefix", "/soma", ParameterDescriptor(description="prefix of published topics and the reset service"))
         p("torch_threads", 1, ParameterDescriptor(description="torch intra-op threads (1 beside other work)"))
-        p("render_process", True, ParameterDescriptor(
-            description="render the images in a child process (CPU device): the physics step then keeps the "
-                        "interpreter to itself; false renders in a thread of the node", read_only=True))
+        p("render_process", False, ParameterDescriptor(
+            description="render the images in a child process (CPU device, soma_ros.live_render) instead of a "
+                        "thread of the node", read_only=True))
         p("publish_robot_tf", True, ParameterDescriptor(
             description="publish the robot's links on /tf and /robot_description as robot_state_publisher does "
                         "(false when the real robot's robot_state_publisher runs beside the node)"))
