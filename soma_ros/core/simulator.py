@@ -339,7 +339,8 @@ class SimState:
         # Jacobi sweeps started from the splats' accumulated rotations (nearly the eigenvectors: the
         # covariance is F Sigma F^T with F mostly a rotation): a rotation matrix, det +1, several times
         # cheaper than a batched LAPACK eigh on 13k 3x3 matrices
-        init = quat_to_rotmat(quat_normalize(self.quats.detach().double())) if self.quats is not None else None
+        quats = getattr(self, "quats", None)  # callers may pass any object with means and covs
+        init = quat_to_rotmat(quat_normalize(quats.detach().double())) if quats is not None else None
         evals, evecs = sym3_eigh(self.covs.double(), init=init)
         quats = rotmat_to_quat(evecs).to(self.means.dtype)
         scales = evals.clamp_min(1e-20).sqrt().to(self.means.dtype)
