@@ -9,8 +9,8 @@ node's sustained rates (16.1 against 16.5 steps/s, 9.3 image sets/s both): the s
 wait inside the node is not the render thread's. It is therefore off by default
 (``render_process`` parameter of the node).
 
-:class:`RenderProcess` owns one child process (``spawn``: nothing of the parent's
-threads, ROS context or locks is inherited) and a set of shared tensors:
+:class:`RenderProcess` owns one child process (nothing of the parent's threads, ROS
+context or locks is inherited) and a set of shared tensors:
 
 ========== ================ ======================================
 buffer     shape            written by
@@ -57,7 +57,6 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 import torch
@@ -122,7 +121,7 @@ def _serve(inp, out) -> None:
                 with torch.no_grad():
                     r = render(bufs["means"], bufs["covs"], bufs["colors"], bufs["opacities"], cams,
                                background=torch.zeros(3, dtype=bufs["means"].dtype))
-                    bufs["rgb"].copy_((r.rgb.clamp(0, 1) * 255).round().to(torch.uint8))
+                    bufs["rgb"].copy_(r.rgb_u8())
                     bufs["depth"].copy_(r.depth.to(torch.float32))
                 reply = {"ok": True, "cpu_ms": (time.thread_time() - c0) * 1e3,
                          "wall_ms": (time.perf_counter() - t0) * 1e3}

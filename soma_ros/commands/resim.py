@@ -41,7 +41,6 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Iterator, Optional, Sequence
 
 import numpy as np
@@ -260,7 +259,7 @@ class SimFrames:
 
         from soma_ros.core.cameras import Cameras
         from soma_ros.core.render import render
-        from soma_ros.core.simulator import SimState
+        from soma_ros.core.simulator import splats_from_covariances
         from soma_ros.nodes.conversions import camera_info, image_depth32, image_rgb8, splats_to_cloud, stamp_from_ns
 
         stamp = stamp_from_ns(self.stamp_ns(t))
@@ -270,7 +269,7 @@ class SimFrames:
         with torch.no_grad():
             out = render(means.to(self.device), covs.to(self.device), self.colors, self.opacities, cams,
                          background=torch.zeros(3, device=self.device))
-        rgb = (out.rgb.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
+        rgb = out.rgb_u8().cpu().numpy()
         depth = out.depth.float().cpu().numpy()
         msgs: list[tuple[str, object]] = []
         tfs = [_transform(np.eye(4), self.world_frame, self.sim_frame, stamp)]
@@ -281,9 +280,9 @@ class SimFrames:
             msgs.append((f"{self.prefix}/{c}/camera_info", camera_info(self.K[i], self.width, self.height, frame, stamp)))
             tfs.append(_transform(c2w[i], self.sim_frame, frame, stamp))
         msgs.append(("/tf", TFMessage(transforms=tfs)))
-        # SimState.to_splats reads only .means and .covs of the state: the splats of this frame
-        # (colours, opacities, mass from the initial splats), as the live node publishes them
-        splats = SimState.to_splats(SimpleNamespace(means=means, covs=covs), self.template)
+        # the splats of this frame (colours, opacities, mass from the initial splats), as the live
+        # node publishes them
+        splats = splats_from_covariances(means, covs, self.template)
         msgs.append((f"{self.prefix}/splats", splats_to_cloud(splats, self.sim_frame, stamp)))
         return msgs
 

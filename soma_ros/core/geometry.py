@@ -122,16 +122,15 @@ def sym3_eigh(A: torch.Tensor, init: Optional[torch.Tensor] = None, tol: float =
     Args:
         A: [N, 3, 3] symmetric (only its symmetric part is used).
         init: optional [N, 3, 3] rotations close to the eigenvectors (e.g. a splat's
-            accumulated rotation): the sweeps start from ``init^T A init``, which is nearly
-            diagonal, and converge in one or two sweeps instead of four or five. Any rotation
-            gives the same decomposition.
+            accumulated rotation): the sweeps start from ``init^T A init``, nearer diagonal.
+            Any rotation gives the same decomposition.
     Returns:
         (evals [N, 3], evecs [N, 3, 3]) with ``A = evecs diag(evals) evecs^T``; the columns of
         ``evecs`` are orthonormal and ``det(evecs) = +1`` when ``init`` is a rotation (or None),
         since every Jacobi step is one. Eigenvalues are not sorted.
 
-    For a batch of small matrices this is several times faster than ``torch.linalg.eigh``,
-    whose CPU cost is one LAPACK call per matrix; repeated eigenvalues (isotropic splats) need
+    For a batch of small matrices this is faster than ``torch.linalg.eigh``, whose CPU cost is
+    one LAPACK call per matrix (13,000 float64 matrices on one core: about 15 against 36 ms); repeated eigenvalues (isotropic splats) need
     no special case. Sweeps stop when every off-diagonal entry is below ``tol`` times the
     matrix's Frobenius norm.
     """

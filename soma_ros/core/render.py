@@ -137,6 +137,10 @@ class RenderOutput:
     n_visible: int = 0  # visible (camera, splat) pairs
     n_isect: int = 0  # (tile, splat) intersections (torch backend)
 
+    def rgb_u8(self) -> torch.Tensor:
+        """The images as 8-bit colour [C, H, W, 3] (clamped to [0, 1], rounded), as published."""
+        return (self.rgb.clamp(0, 1) * 255).round().to(torch.uint8)
+
 
 @functools.lru_cache(maxsize=1)
 def gsplat_available() -> bool:

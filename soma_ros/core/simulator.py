@@ -332,26 +332,31 @@ class SimState:
         return SimState(episode=ep2, **kw)
 
     def to_splats(self, template: Splats) -> Splats:
-        """Splats at this state: means and covariances exact (quats/scales from an
-        eigen-decomposition of the covariances); colours, opacities, mass, attrs from ``template``."""
-        if len(template) != self.means.shape[0]:
-            raise ValueError(f"to_splats: template has {len(template)} splats, state {self.means.shape[0]}")
-        # Jacobi sweeps started from the splats' accumulated rotations (nearly the eigenvectors: the
-        # covariance is F Sigma F^T with F mostly a rotation): a rotation matrix, det +1, several times
-        # cheaper than a batched LAPACK eigh on 13k 3x3 matrices
-        quats = getattr(self, "quats", None)  # callers may pass any object with means and covs
-        init = quat_to_rotmat(quat_normalize(quats.detach().double())) if quats is not None else None
-        evals, evecs = sym3_eigh(self.covs.double(), init=init)
-        quats = rotmat_to_quat(evecs).to(self.means.dtype)
-        scales = evals.clamp_min(1e-20).sqrt().to(self.means.dtype)
-        t = template.to(device=self.means.device)
-        return Splats(
-            means=self.means.detach(), quats=quats, scales=scales, opacities=t.opacities, sh_dc=t.sh_dc,
-            sh_rest=t.sh_rest, mass=t.mass, attrs=t.attrs,
-        )
+        """Splats at this state (:func:`splats_from_covariances`, started from the state's rotations)."""
+        return splats_from_covariances(self.means, self.covs, template, rotations=self.quats)
 
 
 # ----------------------------------------------------------------------------- helpers
+def splats_from_covariances(means: torch.Tensor, covs: torch.Tensor, template: Splats,
+                            rotations: Optional[torch.Tensor] = None) -> Splats:
+    """Splats with these means [N, 3] and covariances [N, 3, 3] exactly (quats / scales from an
+    eigen-decomposition, :func:`~soma_ros.core.geometry.sym3_eigh`); colours, opacities, mass and
+    attrs from ``template``. ``rotations`` [N, 4] (w, x, y, z), optional: the splats' accumulated
+    rotations, where the Jacobi sweeps start (the covariance is F Sigma F^T with F mostly a
+    rotation); the result is the same decomposition either way."""
+    if len(template) != means.shape[0]:
+        raise ValueError(f"to_splats: template has {len(template)} splats, state {means.shape[0]}")
+    init = quat_to_rotmat(quat_normalize(rotations.detach().double())) if rotations is not None else None
+    evals, evecs = sym3_eigh(covs.double(), init=init)
+    quats = rotmat_to_quat(evecs).to(means.dtype)
+    scales = evals.clamp_min(1e-20).sqrt().to(means.dtype)
+    t = template.to(device=means.device)
+    return Splats(
+        means=means.detach(), quats=quats, scales=scales, opacities=t.opacities, sh_dc=t.sh_dc,
+        sh_rest=t.sh_rest, mass=t.mass, attrs=t.attrs,
+    )
+
+
 def _clamp_norm(v: torch.Tensor, limit: Union[float, torch.Tensor]) -> torch.Tensor:
     """Scale rows of v [N, 3] down to norm <= limit (float or [N]); identity inside the bound."""
     n = safe_norm(v, keepdim=True)

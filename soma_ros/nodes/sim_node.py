@@ -529,8 +529,6 @@ class SomaSimNode(Node):
         self._image_rate.tick()
 
     def _set_render_scene(self, template) -> None:
-        import torch
-
         dtype = self.live.state.means.dtype
         self._renderer.set_scene(template.colors().to(dtype), template.opacities.to(dtype))
         self._render_template = template
@@ -538,8 +536,6 @@ class SomaSimNode(Node):
     def _render(self, frame):
         """(rgb uint8 [C, H, W, 3], depth float32 [C, H, W], cameras, the render process's CPU ms) of
         one step's state: in the render process, or in this thread without one (or after it failed)."""
-        import torch
-
         if self._renderer is not None:
             from ..live_render import RenderProcessError
 
@@ -554,8 +550,7 @@ class SomaSimNode(Node):
                 self._renderer.close(timeout_s=0.5)
                 self._renderer = None
         out, cams = self.live.render(frame.state, frame.template, frame.joint_vec)
-        rgb = (out.rgb.clamp(0, 1) * 255).round().to(dtype=torch.uint8).cpu().numpy()
-        return rgb, out.depth.cpu().numpy(), cams, 0.0
+        return out.rgb_u8().cpu().numpy(), out.depth.cpu().numpy(), cams, 0.0
 
     def _on_splats(self) -> None:
         try:

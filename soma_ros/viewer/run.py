@@ -22,7 +22,6 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-import torch
 
 from .scene import TwinView, default_view_pose
 
@@ -183,7 +182,7 @@ class RunSource:
         self.view.set_joints(self.live.required_joints, vec)
         if with_images:
             out, cams = self.live.render(state, template, vec)
-            rgb = (out.rgb.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
+            rgb = out.rgb_u8().cpu().numpy()
             c2w = cams.cam_to_world().cpu().numpy()
             K = cams.K.cpu().numpy()
             for i, c in enumerate(self.live.cameras):
