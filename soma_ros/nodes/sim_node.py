@@ -20,9 +20,10 @@ Start: ``soma_sim_node --ros-args -p checkpoint:=RUN/checkpoint.pt -p scene:=RUN
 
 Threads: physics steps, renders and splat clouds each run in their own
 fixed-rate thread (:mod:`.loops`), so a slow render never delays a step; the
-executor thread only takes /joint_states, at most ``input_rate_hz`` messages a
-second (under a flood the middleware keeps the newest and the rest are counted
-as dropped), so input is never queued behind a step and cannot starve it. The
+main thread takes /joint_states straight from the subscription (:meth:`SomaSimNode.serve`),
+at most ``input_rate_hz`` messages a second (under a flood the middleware keeps
+the newest and the rest are counted as dropped), so input is never queued behind
+a step and cannot starve it. The
 reset service has its own node (``<name>_reset``) and executor thread, and each
 reset runs in a worker thread with a time limit (``reset_timeout_s``): reading,
 checking and binding a scene never stops /joint_states from being taken, and a
@@ -45,7 +46,6 @@ import sys
 import threading
 import time
 from collections import deque
-from pathlib import Path
 from typing import NamedTuple, Optional
 
 import numpy as np
@@ -446,6 +446,40 @@ class SomaSimNode(Node):
                 self._set_frame(self.joints.sample())
         return n
 
+    def serve(self, executor, stop: threading.Event, services_period_s: float = 0.05) -> None:
+        """The main thread's loop until ``stop`` is set or the context ends: wait for /joint_states
+        and take one message at a time from the subscription (at most ``input_rate_hz`` a second,
+        so a flood cannot starve the steps), and give the executor the node's other work (its
+        parameter services) every ``services_period_s``.
+
+        Messages are taken from the subscription directly, not through ``executor.spin_once``:
+        rclpy's executor spends ~0.2-0.3 ms of Python per call under the interpreter lock, and
+        at the input rate that lock time, taken while the physics and render threads need the
+        lock between their torch calls, roughly doubled the wall time of a step in the node
+        (docs/benchmarks.md, "Live node").
+        """
+        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+
+        period = 1.0 / self.input_rate_hz
+        wait_set = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
+        next_services = time.monotonic()
+        while not stop.is_set() and self.context.ok():
+            t0 = time.monotonic()
+            if t0 >= next_services:
+                executor.spin_once(timeout_sec=0)
+                next_services = t0 + services_period_s
+            with self.sub_js.handle:
+                wait_set.clear_entities()
+                wait_set.add_subscription(self.sub_js.handle)
+                wait_set.wait(int(min(services_period_s, max(0.0, next_services - t0)) * 1e9))
+                taken = (self.sub_js.handle.take_message(JointState, False)
+                         if self.sub_js.handle.pointer in wait_set.get_ready_entities("subscription") else None)
+            if taken is not None:
+                self._on_joint_state(*taken)
+                rest = period - (time.monotonic() - t0)
+                if rest > 0:
+                    stop.wait(rest)
+
     # ------------------------------------------------------------------- step
     def _on_step(self) -> None:
         # A reset waits for a running step: a step must not sample the joints before a reset
@@ -600,13 +634,7 @@ def run(argv: Optional[list[str]] = None) -> int:
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         node.start()
-        period = 1.0 / node.input_rate_hz  # at most this many takes a second: a flood cannot starve the steps
-        while not stop.is_set() and rclpy.ok():
-            t0 = time.monotonic()
-            executor.spin_once(timeout_sec=0.1)
-            rest = period - (time.monotonic() - t0)
-            if rest > 0:
-                stop.wait(rest)
+        node.serve(executor, stop)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (FileNotFoundError, ValueError) as exc:
