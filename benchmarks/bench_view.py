@@ -131,8 +131,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         for r in range(args.rounds):
             for with_viewer in (False, True):
                 if with_viewer:
-                    viewer, chrome = _start_viewer(b.domain, args.browser, tmp / f"viewer_{r}.log")
-                    b.probe.hold(hover, lambda: False, 10.0)  # it subscribes and draws its first frames
+                    log = tmp / f"viewer_{r}.log"
+                    viewer, chrome = _start_viewer(b.domain, args.browser, log)
+                    # its start-up (the robot's meshes loaded from /robot_description) is not measured
+                    if not b.probe.hold(hover, lambda: "robot drawn" in log.read_text(), 120.0):
+                        raise RuntimeError(f"soma view --node did not draw the robot:\n{log.read_text()[-3000:]}")
+                    b.probe.hold(hover, lambda: False, 5.0)  # it draws its first frames
                     view_ps = psutil.Process(viewer.pid)
                     view_ps.cpu_percent(None)
                 meter = CpuMeter(b.node.proc.pid)  # the node with its render process

@@ -14,7 +14,9 @@ Cameras are found by topic name (every ``<p>/<cam>/image_raw``), so any node's
 cameras are shown. Subscriptions are best effort with depth 1 where the node's
 writer is reliable keep-last-1: the node never waits for the viewer, and a slow
 viewer only skips messages. The view is redrawn at ``draw_hz`` from the newest
-messages, only when something new arrived.
+messages, only when something new arrived: the splats, status, joint states and
+images are taken by the draw thread when it draws (the newest only, never one per
+message), and only TF and the robot description go through an executor.
 """
 
 from __future__ import annotations
@@ -68,6 +70,11 @@ class NodeSource:
         self.node = rclpy.create_node("soma_view", context=self.ctx)
         self.executor = SingleThreadedExecutor(context=self.ctx)
         self.executor.add_node(self.node)
+        # the topics of which only the newest message is drawn are taken by the draw thread
+        # itself, from subscriptions on a node no executor spins: a 100 Hz /joint_states or a
+        # 30 Hz status costs the viewer nothing between two draws
+        self.pull_node = rclpy.create_node("soma_view_pull", context=self.ctx, start_parameter_services=False)
+        self._pulled: dict = {}
         self.tf = TfGraph()
         self._latest: dict = {}
         self._seen: dict = {}
@@ -83,13 +90,16 @@ class NodeSource:
         tf_static_qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
                                    durability=DurabilityPolicy.TRANSIENT_LOCAL)
         sub = self.node.create_subscription
-        sub(PointCloud2, f"{self.prefix}/splats", self._keep("splats"), self.best_effort)
-        sub(SimStatus, f"{self.prefix}/status", self._keep("status"), QoSProfile(depth=10))
-        sub(JointState, "/joint_states", self._keep("joints"), qos_profile_sensor_data)
+        self._pull("splats", PointCloud2, f"{self.prefix}/splats", self.best_effort)
+        self._pull("status", SimStatus, f"{self.prefix}/status", QoSProfile(depth=10))
+        self._pull("joints", JointState, "/joint_states", qos_profile_sensor_data)
         sub(TFMessage, "/tf", self.tf.add, QoSProfile(depth=100))
         sub(TFMessage, "/tf_static", self.tf.add, tf_static_qos)
         sub(String, "/robot_description", self._keep("description"), latched)
         self.node.create_timer(1.0, self._discover)
+
+    def _pull(self, key, msg_type, topic: str, qos) -> None:
+        self._pulled[key] = self.pull_node.create_subscription(msg_type, topic, lambda _msg: None, qos)
 
     def _keep(self, key):
         def cb(msg) -> None:
@@ -108,14 +118,23 @@ class NodeSource:
             if not m or m.group(1) in self._cams:
                 continue
             cam = m.group(1)
+            self._pull(("sim", cam), Image, topic, self.best_effort)
+            self._pull(("info", cam), CameraInfo, f"{self.prefix}/{cam}/camera_info", self.best_effort)
+            self._pull(("real", cam), Image, f"/{cam}/color/image_raw", self.best_effort)
             self._cams.add(cam)
-            sub = self.node.create_subscription
-            sub(Image, topic, self._keep(("sim", cam)), self.best_effort)
-            sub(CameraInfo, f"{self.prefix}/{cam}/camera_info", self._keep(("info", cam)), self.best_effort)
-            sub(Image, f"/{cam}/color/image_raw", self._keep(("real", cam)), self.best_effort)
 
     # ------------------------------------------------------------------ drawing
+    def _newest(self, key):
+        """The newest message of a pulled topic (taken now if one arrived), else None."""
+        sub = self._pulled.get(key)
+        if sub is not None:
+            with sub.handle:
+                while (got := sub.handle.take_message(sub.msg_type, False)) is not None:
+                    self._keep(key)(got[0])
+        return self._latest.get(key)
+
     def _take(self, key, seen_before: dict):
+        self._newest(key)
         with self._lock:
             n = self._seen.get(key, 0)
             msg = self._latest.get(key)
@@ -171,13 +190,13 @@ class NodeSource:
         if self.image_hz > 0 and now - self._last_images >= 1.0 / self.image_hz:
             self._last_images = now
             for cam in sorted(self._cams):
-                sim, info = self._take(("sim", cam), seen), self._latest.get(("info", cam))
+                sim, info = self._take(("sim", cam), seen), self._newest(("info", cam))
                 if sim is None or info is None:
                     continue
                 T = self.tf.lookup(info.header.frame_id, self.world)
                 if T is None:
                     continue
-                real = self._latest.get(("real", cam))
+                real = self._newest(("real", cam))
                 self.view.set_camera(cam, np.array(info.k).reshape(3, 3), info.width, info.height, T,
                                      sim_image=_image_rgb(sim), real_image=None if real is None else _image_rgb(real))
         st = self._take("status", seen)
@@ -214,6 +233,7 @@ class NodeSource:
         for t in self._threads:
             t.join(timeout=5.0)
         self.executor.shutdown()
+        self.pull_node.destroy_node()
         self.node.destroy_node()
         if self.ctx.ok():
             import rclpy

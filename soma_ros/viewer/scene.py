@@ -89,6 +89,7 @@ class TwinView:
         self._splat_data: Optional[tuple] = None  # (means, covs, rgb, opacity) last drawn
         self._error: Optional[np.ndarray] = None
         self._robot = None
+        self._posed: Optional[tuple] = None  # the (names, positions) the robot was last posed at
         self._robot_names: list[str] = []
         self._frustums: dict = {}
         self._panels: dict = {}
@@ -177,13 +178,19 @@ class TwinView:
             self._link_nodes[name] = node
         self._robot = self._frames
         self._robot_names = []
+        self._posed = None
         self.set_joints([], [])
+        print(f"soma view: robot drawn ({len(self._link_nodes)} links with meshes)", flush=True)
 
     def set_joints(self, names: Sequence[str], positions: Sequence[float]) -> None:
         """Pose the robot's links from a joint state (names [J], positions [J]); joints it does not
         name are held at 0 clamped into their limits."""
         if self._robot is None:
             return
+        key = (tuple(names), tuple(float(v) for v in positions))
+        if key == self._posed:  # unchanged: nothing to send
+            return
+        self._posed = key
         poses = self._frames.link_poses(list(names), np.asarray(list(positions), dtype=np.float64))
         for name, node in self._link_nodes.items():
             wxyz, pos = matrix_to_wxyz_position(self._base_pose @ poses[name][0])
@@ -202,9 +209,16 @@ class TwinView:
         wxyz, pos = matrix_to_wxyz_position(cam_to_view)
         shown = sim_image if sim_image is not None else real_image
         img = None if shown is None else _image_u8(shown)
-        self._frustums[name] = self.server.scene.add_camera_frustum(
-            f"/cameras/{name}", fov=float(fov), aspect=float(width) / float(height), scale=scale, image=img,
-            wxyz=wxyz, position=pos, color=(40, 120, 220))
+        shape = (float(fov), float(width) / float(height), float(scale), img is None)
+        old = self._frustums.get(name)
+        if old is not None and old[1] == shape:  # the same frustum: new image and pose only
+            old[0].wxyz, old[0].position = wxyz, pos
+            if img is not None:
+                old[0].image = img
+        else:
+            self._frustums[name] = (self.server.scene.add_camera_frustum(
+                f"/cameras/{name}", fov=shape[0], aspect=shape[1], scale=scale, image=img,
+                wxyz=wxyz, position=pos, color=(40, 120, 220)), shape)
         tiles = [_image_u8(x) for x in (real_image, sim_image) if x is not None]
         if not tiles:
             return
