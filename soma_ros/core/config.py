@@ -359,6 +359,20 @@ def _default_effects() -> list[EffectSpec]:
 #: a load accepts and drops): (section, key) -> the value it always had in a shipped config
 RETIRED_MODEL_KEYS: dict[tuple[str, str], Any] = {("dynamics", "direct_splats"): False}
 
+
+def drop_retired_keys(data: Mapping[str, Any], retired: Mapping[tuple[str, str], Any], where: str = "") -> dict:
+    """``data`` without the removed options of ``retired`` ((section, key) -> the only value
+    accepted: the one older files store); any other value of one is refused in one line."""
+    data = dict(data)
+    for (section, key), off in retired.items():
+        sub = data.get(section)
+        if isinstance(sub, Mapping) and key in sub:
+            if sub[key] != off:
+                raise ConfigError(f"{where}{section}.{key}: this option was removed (only {off!r} is accepted, "
+                                  f"as older checkpoints and run folders store it)")
+            data[section] = {k: v for k, v in sub.items() if k != key}
+    return data
+
 @dataclass
 class ModelConfig:
     """The whole simulator configuration (see module docstring)."""
@@ -394,14 +408,7 @@ class ModelConfig:
 
     @staticmethod
     def from_dict(data: Mapping[str, Any], where: str = "") -> "ModelConfig":
-        data = dict(data)
-        for (section, key), off in RETIRED_MODEL_KEYS.items():
-            sub = data.get(section)
-            if isinstance(sub, Mapping) and key in sub:
-                if sub[key] != off:
-                    raise ConfigError(f"{where}{section}.{key}: this option was removed (only {off!r} is accepted, "
-                                      f"as older checkpoints store it)")
-                data[section] = {k: v for k, v in sub.items() if k != key}
+        data = drop_retired_keys(data, RETIRED_MODEL_KEYS, where)
         effects = data.pop("effects", None)
         cfg = from_dict(ModelConfig, data, where)
         if effects is not None:

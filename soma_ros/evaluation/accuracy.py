@@ -182,7 +182,7 @@ def variant_train_config(bench: BenchConfig, obj: str, variant: str) -> TrainCon
     * ``img_only``: the paper's "Img-only" (raw image supervision, without the blended
       supervision): the object-masked L2 + D-SSIM image loss is the only term --
       ``loss.momentum_weight = 0`` (no regulariser) and the 3D terms the base config adds
-      (``points_weight``, ``depth_weight``, ``silhouette_weight``) = 0. Keeping the 3D point
+      (``points_weight``, ``depth_weight``) = 0. Keeping the 3D point
       term would make it ``full`` minus a regulariser that is ~0 anyway, not an image-only model.
     * ``no_mrt``: + no multi-resolution schedule: stage 1 off, all its epochs at the frame rate
       in stage 2 (same number of iterations).
@@ -205,8 +205,7 @@ def variant_train_config(bench: BenchConfig, obj: str, variant: str) -> TrainCon
     if variant == "full":
         return cfg
     if variant == "img_only":
-        over: dict[str, Any] = {"loss": {"momentum_weight": 0.0, "points_weight": 0.0, "depth_weight": 0.0,
-                                         "silhouette_weight": 0.0}}
+        over: dict[str, Any] = {"loss": {"momentum_weight": 0.0, "points_weight": 0.0, "depth_weight": 0.0}}
     elif variant == "no_mrt":
         s = cfg.schedule
         over = {"schedule": {"stage1": {"epochs": 0}, "stage2": {"epochs": s.stage1.epochs + s.stage2.epochs}}}

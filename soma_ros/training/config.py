@@ -32,7 +32,7 @@ from typing import Any, Mapping, Optional, Union
 
 import yaml
 
-from soma_ros.core.config import ConfigError, from_dict, merge_config, read_config, to_dict
+from soma_ros.core.config import ConfigError, drop_retired_keys, from_dict, merge_config, read_config, to_dict
 
 from soma_ros.data.config import DataConfig, TopicNames
 from soma_ros.scene.config import SceneConfig
@@ -64,7 +64,6 @@ class LossConfig:
     rule (:func:`soma_ros.core.scoring.complete_depth_maps`): both maps completed with the
     table-plane depth, scored on object pixels or where the prediction renders (alpha > 0.5),
     robot pixels excluded -- so splats rendered where the camera sees the table cost too
-    + ``silhouette_weight`` * rendered alpha vs object mask off the object
     + ``points_weight`` * mean distance observed object point -> nearest splat (m)
     (see :func:`soma_ros.training.train.frame_terms`)
     + ``network_weight`` * the network's mean squared contribution over the rollout's steps
@@ -86,7 +85,6 @@ class LossConfig:
     dssim_window: int = 5
     dssim_reduce: str = "image"
     camera_reduce: str = "camera"
-    silhouette_weight: float = 0.0
     momentum_weight: float = 1.0
     depth_weight: float = 0.0
     depth_region: str = "object"
@@ -107,10 +105,8 @@ class LossConfig:
             raise ConfigError(f"{where}.depth_region: one of object, scored; got {self.depth_region!r}")
         if self.camera_reduce not in ("camera", "pixel"):
             raise ConfigError(f"{where}.camera_reduce: one of camera, pixel; got {self.camera_reduce!r}")
-        if min(self.momentum_weight, self.depth_weight, self.silhouette_weight, self.points_weight,
-               self.network_weight) < 0:
-            raise ConfigError(f"{where}: momentum_weight, depth_weight, silhouette_weight, points_weight and "
-                              "network_weight must be >= 0")
+        if min(self.momentum_weight, self.depth_weight, self.points_weight, self.network_weight) < 0:
+            raise ConfigError(f"{where}: momentum_weight, depth_weight, points_weight and network_weight must be >= 0")
 
 
 @dataclass
@@ -336,18 +332,12 @@ class IdentifyConfig:
     ``extend``: a best value on the grid's first or last value is not a minimum, so up to ``extend``
     more values are scored beyond that end, with the end's spacing (the ratio of its two outermost
     values; friction: their difference, never below 0), as long as each new one scores lower than
-    the one before (0: the grid only).
-
-    ``then``: further coefficients identified in turn, each at the values chosen before it, on the
-    same episodes: ``[{coefficient, values, extend}, ...]`` (e.g. the bending first, then how far the
-    rope stretches: the reference world's rope stretches 10-15% next to the fingers, where the
-    default prior is nearly inextensible). Empty (default): one coefficient."""
+    the one before (0: the grid only)."""
 
     coefficient: str = "bend"
     values: list = field(default_factory=list)
     episodes: int = 3
     extend: int = 0
-    then: list = field(default_factory=list)
 
     def validate(self, where: str = "identify") -> None:
         if self.coefficient not in IDENTIFY_COEFFICIENTS:
@@ -365,29 +355,11 @@ class IdentifyConfig:
         if self.extend and len(set(vals)) < 2:
             raise ConfigError(f"{where}.extend: needs at least two different values to continue the grid, got {self.values!r}")
         self.values = vals
-        if not isinstance(self.then, list):
-            raise ConfigError(f"{where}.then: a list of {{coefficient, values, extend}}, got {self.then!r}")
-        if self.then and not vals:
-            raise ConfigError(f"{where}.then: needs values for the first coefficient ({self.coefficient})")
-        stages = []
-        for i, t in enumerate(self.then):
-            if not isinstance(t, Mapping) or set(t) - {"coefficient", "values", "extend"} or "coefficient" not in t:
-                raise ConfigError(f"{where}.then[{i}]: a mapping with a coefficient and its values (and extend), got {t!r}")
-            stage = self._stage(t)
-            stage.validate(f"{where}.then[{i}]")
-            if not stage.values:
-                raise ConfigError(f"{where}.then[{i}].values: at least one value")
-            stages.append({"coefficient": stage.coefficient, "values": stage.values, "extend": stage.extend})
-        self.then = stages
 
-    def _stage(self, t: Mapping) -> "IdentifyConfig":
-        """One entry of ``then`` as its own identification, on this one's episodes."""
-        return IdentifyConfig(coefficient=t["coefficient"], values=list(t.get("values") or []),
-                              episodes=self.episodes, extend=t.get("extend", 0))
 
-    def stages(self) -> list["IdentifyConfig"]:
-        """The coefficients to identify, in order: this one, then each of ``then``."""
-        return [self] + [self._stage(t) for t in self.then]
+#: options removed from the training config, with the value older run folders store in
+#: train_config.yaml (accepted and dropped): (section, key) -> that value
+RETIRED_TRAIN_KEYS: dict[tuple[str, str], Any] = {("loss", "silhouette_weight"): 0.0, ("identify", "then"): []}
 
 
 @dataclass
@@ -426,7 +398,7 @@ class TrainConfig:
 
     @staticmethod
     def from_dict(data: Mapping[str, Any], where: str = "") -> "TrainConfig":
-        return from_dict(TrainConfig, data, where).validate()
+        return from_dict(TrainConfig, drop_retired_keys(data, RETIRED_TRAIN_KEYS, where), where).validate()
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.to_dict(), sort_keys=False)

@@ -105,7 +105,7 @@ __all__ = [
 
 TRAIN_STATE = "train_state.pt"
 TRAIN_STATE_FORMAT = "soma_ros.train_state/1"
-LOG_COLUMNS = ["kind", "iteration", "epoch", "stage", "stride", "steps", "episode", "loss", "img", "silhouette",
+LOG_COLUMNS = ["kind", "iteration", "epoch", "stage", "stride", "steps", "episode", "loss", "img",
                "depth", "points", "momentum", "grad_norm", "lr", "seconds", "follow", "network"]
 
 
@@ -500,7 +500,7 @@ def _scene_ctx(bundle: SceneBundle, dt: float, device, dtype) -> SceneContext:
     return SceneContext(base.gravity, base.plane_normal, base.plane_offset, dt).to(device=device, dtype=dtype)
 
 
-LOSS_TERMS = ("img", "silhouette", "depth", "points", "momentum", "network")
+LOSS_TERMS = ("img", "depth", "points", "momentum", "network")
 
 
 def frame_terms(sim_state: SimState, colors: torch.Tensor, opacities: torch.Tensor, ep: EpisodeData, t: int,
@@ -511,9 +511,6 @@ def frame_terms(sim_state: SimState, colors: torch.Tensor, opacities: torch.Tens
 
     * ``img``: the paper's lam masked-L2 + (1 - lam) D-SSIM on object pixels (robot pixels are
       not in the mask), per camera then averaged (``loss.camera_reduce``);
-    * ``silhouette`` (if weighted): sum over non-robot pixels of (alpha - object mask)^2 divided
-      by the object's pixel count, per camera: penalises rendering the object where the camera
-      sees background (the object-masked ``img`` term cannot see that);
     * ``depth`` (if weighted): mean |rendered - recorded depth| (m) on object pixels
       (``loss.depth_region: object``) or on the evaluation's scored region with both maps
       completed by the table depth (``scored``; needs ``plane`` = (table normal [3], offset));
@@ -525,7 +522,7 @@ def frame_terms(sim_state: SimState, colors: torch.Tensor, opacities: torch.Tens
     """
     lc = cfg.loss
     z = sim_state.means.new_zeros(())
-    terms = {"silhouette": z, "depth": z, "points": z}
+    terms = {"depth": z, "points": z}
     cams = ep.cameras(t, dtype=sim_state.means.dtype, device=device)
     out = render(sim_state.means, sim_state.covs, colors, opacities, cams)
     gt = ep.rgb[t].to(device=device, dtype=out.rgb.dtype)
@@ -537,10 +534,7 @@ def frame_terms(sim_state: SimState, colors: torch.Tensor, opacities: torch.Tens
     else:
         terms["img"] = masked_l2_dssim_loss(out.rgb, gt, mask, lam=lc.lam, window_size=lc.dssim_window,
                                             dssim_reduce=lc.dssim_reduce)
-    if lc.silhouette_weight > 0:
-        keep = (~ep.robot_mask[t].to(device)).to(out.alpha.dtype)
-        m = mask.to(out.alpha.dtype)
-        terms["silhouette"] = ((keep * (out.alpha - m) ** 2).sum(dim=(1, 2)) / m.sum(dim=(1, 2)).clamp_min(1.0)).mean()
+
     def depth_term(region: str) -> torch.Tensor:
         gd = ep.depth[t].to(device=device, dtype=out.depth.dtype)
         if region == "scored":
@@ -589,8 +583,8 @@ def observed_points(ep: EpisodeData, t: int, max_points: int) -> torch.Tensor:
 def total_loss(terms: dict[str, torch.Tensor], cfg: TrainConfig) -> torch.Tensor:
     """The weighted sum of the loss terms (``network``: the network's contribution, 0 if absent)."""
     lc = cfg.loss
-    loss = (terms["img"] + lc.silhouette_weight * terms["silhouette"] + lc.depth_weight * terms["depth"]
-            + lc.points_weight * terms["points"] + lc.momentum_weight * terms["momentum"])
+    loss = (terms["img"] + lc.depth_weight * terms["depth"] + lc.points_weight * terms["points"]
+            + lc.momentum_weight * terms["momentum"])
     if lc.network_weight > 0 and "network" in terms:
         loss = loss + lc.network_weight * terms["network"]
     return loss
@@ -759,30 +753,17 @@ def identify_prior(sim: Simulator, store: EpisodeStore, names: Sequence[str], cf
     episodes) like a validation; while the best lies on the grid's edge, up to ``extend`` values
     beyond it (:func:`~soma_ros.training.config.search_past_edge`, each kept only while it scores lower); set the best
     (``criterion``: ``val_loss`` or ``points``; ties keep the earlier value) and return
-    ``{coefficient, criterion, episodes, chosen, rows}`` (rows beyond the grid: ``extended`` true).
-    With ``then``, each further coefficient is identified the same way at the values chosen before
-    it, and its own such record is listed under ``"then"``."""
+    ``{coefficient, criterion, episodes, chosen, rows}`` (rows beyond the grid: ``extended`` true)."""
     from soma_ros.core.effects.physics import PhysicsPrior
 
     terms = [sim.effects[k] for k in sim.effects.keys() if isinstance(sim.effects[k], PhysicsPrior)]
     if len(terms) != 1:
         raise ValueError(f"identify: needs exactly one effect 'physics' in the model, found {len(terms)}")
-    stages = cfg.identify.stages()
-    for ic in stages:  # every coefficient must exist before the first grid is spent
-        if getattr(terms[0], _IDENTIFY_ATTR[ic.coefficient], None) is None:
-            raise ValueError(f"identify: the physics effect has no coefficient {ic.coefficient!r} "
-                             "(tilt: set grip_tilt_compliance > 0 on it)")
-    records = [_identify_one(terms[0], ic, sim, store, names, cfg, criterion, dist, say) for ic in stages]
-    first = records[0]
-    if len(records) > 1:
-        first["then"] = records[1:]
-    return first
-
-
-def _identify_one(term, ic, sim: Simulator, store: EpisodeStore, names: Sequence[str], cfg: TrainConfig,
-                  criterion: str, dist: Optional[DistInfo], say) -> dict:
-    """One coefficient's grid (and its continuation past an edge), the best value set: its record."""
-    param = getattr(term, _IDENTIFY_ATTR[ic.coefficient])
+    ic = cfg.identify
+    param = getattr(terms[0], _IDENTIFY_ATTR[ic.coefficient], None)
+    if param is None:
+        raise ValueError(f"identify: the physics effect has no coefficient {ic.coefficient!r} "
+                         "(tilt: set grip_tilt_compliance > 0 on it)")
     log = ic.coefficient != "friction"
     rows: list[dict] = []
     scores: list[float] = []  # the criterion of each row (inf where not finite)

@@ -124,12 +124,20 @@ def test_a_training_config_variant_is_its_base_plus_what_it_names(tmp_path):
 #: shipped variants and their bases (config/<family>/<variant>.yaml says ``base: <base>``)
 SHIPPED_VARIANTS = [("discrepancy", "coarse", "default"), ("discrepancy", "fast", "default"),
                     ("discrepancy", "physics", "default"), ("reconstruct", "quality", "cpu"),
-                    ("eval", "tiny_mlp", "tiny")]
+                    ("eval", "tiny_mlp", "tiny"), ("train", "tiny_mlp", "tiny"), ("train", "tiny_physics", "tiny"),
+                    ("train", "tiny_physics_newton", "tiny_physics"), ("train", "tiny_physics_rod", "tiny_physics_newton"),
+                    ("train", "experiments/coupling_feature", "../tiny"),
+                    ("train", "experiments/coupling_points", "coupling_feature")]
+
+
+def _leaves(d) -> int:
+    """How many keys a mapping sets, counting those of nested mappings one by one."""
+    return sum(_leaves(v) if isinstance(v, dict) else 1 for v in d.values())
 
 
 @pytest.mark.parametrize("family,variant,base", SHIPPED_VARIANTS)
 def test_shipped_variants_name_their_base_and_load(family, variant, base):
-    """Each shipped variant names its base, writes fewer keys than the base, and loads through its
+    """Each shipped variant names its base, sets fewer keys than the base, and loads through its
     family's loader (unknown keys refused there) to a config that differs from the base's."""
     import yaml
 
@@ -139,16 +147,91 @@ def test_shipped_variants_name_their_base_and_load(family, variant, base):
     from soma_ros.paths import resolve_config
     from soma_ros.scene.splat_fit import load_fit_config
 
-    raw = yaml.safe_load(resolve_config(f"{family}/{variant}").read_text())
+    from soma_ros.training.config import load_train_config
+
+    path = resolve_config(f"{family}/{variant}")
+    raw = yaml.safe_load(path.read_text())
     assert raw.get("base") == base
-    assert len(raw) < len(yaml.safe_load(resolve_config(f"{family}/{base}").read_text()))
-    load = {"discrepancy": load_discrepancy_config, "reconstruct": load_fit_config, "eval": load_bench_config}[family]
-    a, b = to_dict(load(base)), to_dict(load(variant))
+    base_path = (path.parent / f"{base}.yaml").resolve()
+    assert _leaves(raw) < _leaves(yaml.safe_load(base_path.read_text()))
+    load = {"discrepancy": load_discrepancy_config, "reconstruct": load_fit_config, "eval": load_bench_config,
+            "train": load_train_config}[family]
+    a, b = to_dict(load(base_path)), to_dict(load(path))
     a.pop("name", None), b.pop("name", None)
     assert a != b
     for key, value in raw.items():  # what the variant names is what it gets
         if key != "base" and not isinstance(value, dict):
             assert b[key] == value, key
+
+
+def test_every_training_config_but_the_two_bases_is_a_variant():
+    """config/train/ holds two bases (tiny for CPU, paper for GPUs); every other file names one."""
+    from soma_ros.core.config import read_config
+
+    train = config_dir() / "train"
+    for path in sorted(train.rglob("*.yaml")):
+        raw = yaml.safe_load(path.read_text())
+        if path.stem in ("tiny", "paper") and path.parent == train:
+            assert "base" not in raw, path
+        else:
+            assert "base" in raw, path
+            read_config(path)
+
+
+#: what each training variant resolves to where it differs from ``tiny`` (train config keys, and
+#: ``model.`` keys of the simulator config it builds)
+_TINY = {"schedule.stage1.length_start": 8, "schedule.stage1.length_growth": 0, "optim.network.lr": 1e-4,
+         "optim.network.warmup_iters": 15, "run.keep": "best_score", "loss.depth_weight": 1.0,
+         "loss.depth_region": "scored", "loss.points_weight": 0.0, "identify.values": [], "identify.extend": 0,
+         "model.gnn.out_init_scale": 0.0, "model.robot.form": "coupling", "model.robot.feature": False,
+         "model.physics.solver": None, "model.physics.bend_model": None}
+_SHORT = {"schedule.stage1.length_start": 2, "schedule.stage1.length_growth": 2, "optim.network.lr": None,
+          "optim.network.warmup_iters": 0, "run.keep": "best", "model.gnn.out_init_scale": 0.1}
+_POINTS = {"loss.depth_weight": 0.0, "loss.depth_region": "object", "loss.points_weight": 3.0}
+_PHYSICS = {**_SHORT, "model.robot.form": None, "model.robot.feature": None, "model.physics.solver": "jacobi",
+            "model.physics.bend_model": "pairs"}
+_NEWTON = {**_PHYSICS, "model.gnn.out_init_scale": 0.0, "model.physics.solver": "newton",
+           "identify.values": [1e-8, 1e-7, 1e-6, 1e-5, 1e-4]}
+_COUPLING = {**_SHORT, "model.robot.feature": True}
+TRAIN_VARIANTS = {
+    "tiny": {},
+    "tiny_mlp": {**_SHORT, **_POINTS, "model.robot.form": "mlp", "model.robot.feature": True},
+    "tiny_physics": _PHYSICS,
+    "tiny_physics_newton": _NEWTON,
+    "tiny_physics_rod": {**_NEWTON, "model.physics.bend_model": "rod", "identify.values": [1.0, 3.0, 10.0, 30.0, 100.0],
+                         "identify.extend": 3},
+    "experiments/coupling_feature": _COUPLING,
+    "experiments/coupling_points": {**_COUPLING, **_POINTS},
+}
+
+
+@pytest.mark.parametrize("name", sorted(TRAIN_VARIANTS))
+def test_each_training_config_resolves_to_its_settings(name):
+    """Each shipped training config, with its bases applied, gets the settings it is documented with
+    (the keys where the variants differ)."""
+    from soma_ros.training.config import load_train_config
+
+    cfg = load_train_config(name)
+    model = cfg.model_config()
+    effects = {e.name: e for e in model.effects}
+
+    def get(key):
+        if key.startswith("model.gnn."):
+            return getattr(model.gnn, key.split(".")[-1])
+        if key.startswith(("model.robot.", "model.physics.")):
+            _, effect, attr = key.split(".")
+            if effect not in effects:
+                return None
+            if attr == "feature":
+                return effects[effect].feature
+            return effects[effect].params.get(attr, {"form": "mlp", "solver": "jacobi", "bend_model": "pairs"}[attr])
+        obj = cfg
+        for part in key.split("."):
+            obj = getattr(obj, part)
+        return obj
+
+    expected = {**_TINY, **TRAIN_VARIANTS[name]}
+    assert {k: get(k) for k in expected} == expected
 
 
 def test_a_checkpoint_written_with_a_retired_option_at_its_old_value_loads():

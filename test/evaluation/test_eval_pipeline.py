@@ -91,7 +91,7 @@ def test_variant_configs_differ_only_as_documented():
     # img_only = the image loss alone: none of the 3D terms full adds on top of it
     assert full.loss.depth_weight > 0 and full.loss.depth_region == "scored"  # the tiny config's 3D term
     assert img.loss.points_weight == 0
-    assert img.loss.depth_weight == 0 and img.loss.silhouette_weight == 0
+    assert img.loss.depth_weight == 0
     assert img.loss.lam == full.loss.lam and img.loss.dssim_window == full.loss.dssim_window
     assert nomrt.schedule.stage1.epochs == 0 and nomrt.schedule.total_iters == full.schedule.total_iters
     eff = [e.name for e in so.model_config().effects]

@@ -405,6 +405,24 @@ def test_configs_and_cli_overrides():
     assert p.returncode == 0 and "--data" in p.stdout and "torchrun" in p.stdout
 
 
+def test_a_run_folders_config_with_a_removed_option_at_its_old_value_loads(tmp_path):
+    """Older run folders' train_config.yaml store ``loss.silhouette_weight: 0.0`` and
+    ``identify.then: []``; they load, and any other value of them is refused in one line."""
+    import yaml
+
+    from soma_ros.training.config import ConfigError, load_train_config
+
+    d = load_train_config("tiny").to_dict()
+    old = {**d, "loss": {**d["loss"], "silhouette_weight": 0.0}, "identify": {**d["identify"], "then": []}}
+    path = tmp_path / "train_config.yaml"
+    path.write_text(yaml.safe_dump(old))
+    assert load_train_config(path).to_dict() == d
+    for section, key, value in (("loss", "silhouette_weight", 0.5), ("identify", "then", [{"coefficient": "stretch"}])):
+        path.write_text(yaml.safe_dump({**old, section: {**old[section], key: value}}))
+        with pytest.raises(ConfigError, match=rf"^train_config.yaml: {section}\.{key}: this option was removed"):
+            load_train_config(path)
+
+
 def test_keep_best_points_keeps_the_lowest_validation_point_distance(lift_dataset, tmp_path):
     """``run.keep: best_points``: checkpoint.pt holds the weights of the validation with the lowest
     point distance (observed depth points to the nearest splat), which need not be the lowest loss,
@@ -576,14 +594,6 @@ def test_the_grips_tilt_is_identified_when_the_rod_config_turns_it_on(lift_datas
     with pytest.raises(ValueError, match="no coefficient 'tilt'"):
         train(load_train_config("tiny_physics_rod", over), lift_dataset, tmp_path / "off", max_iterations=0,
               log=lambda *a, **k: None)
-    # asked as a later stage (identify.then), refused before the first grid is scored
-    logs: list = []
-    later = {**over, "identify": {"coefficient": "bend", "values": [1.0, 100.0], "episodes": 2,
-                                  "then": [{"coefficient": "tilt", "values": [0.002]}]}}
-    with pytest.raises(ValueError, match="no coefficient 'tilt'"):
-        train(load_train_config("tiny_physics_rod", later), lift_dataset, tmp_path / "off2", max_iterations=0,
-              log=lambda *a, **k: logs.append(a[0]))
-    assert not [m for m in logs if m.startswith("identify")]
     run = tmp_path / "run"
     s = train(load_train_config("tiny_physics_rod", {**over, "model_overrides": {**base.model_overrides,
                                                                                   "effects": effects}}),
@@ -592,47 +602,6 @@ def test_the_grips_tilt_is_identified_when_the_rod_config_turns_it_on(lift_datas
     assert all(math.isfinite(v) for v in losses) and losses[0] != losses[1]  # the tilt changes the rollouts
     sd = read_checkpoint(run / "checkpoint.pt")["state_dict"]
     assert float(sd["effects.terms.physics.log_tilt"]) == pytest.approx(math.log(s["identified"]["chosen"]), rel=1e-6)
-
-
-def test_identify_then_sets_a_second_coefficient_at_the_first_ones_choice(lift_dataset, tmp_path):
-    """``identify.then``: after the bending, the rod's stretch compliance is identified on the same
-    episodes with the chosen bending in place; both chosen values are in the checkpoint and the
-    record; malformed stages are refused."""
-    from soma_ros.core.checkpoint import read_checkpoint
-    from soma_ros.training.config import ConfigError, load_train_config
-    from soma_ros.training.train import train
-
-    for bad in ({"values": [1.0], "then": [{"values": [1e-9]}]},  # no coefficient
-                {"values": [1.0], "then": [{"coefficient": "stretch", "values": [1e-9], "episodes": 2}]},
-                {"values": [1.0], "then": [{"coefficient": "stretch", "values": []}]},
-                {"values": [1.0], "then": [{"coefficient": "youngs", "values": [1.0]}]},
-                {"values": [], "then": [{"coefficient": "stretch", "values": [1e-9]}]},
-                {"values": [1.0], "then": {"coefficient": "stretch"}}):
-        with pytest.raises(ConfigError, match="identify"):
-            load_train_config("tiny_physics_rod", {"identify": bad})
-    over = _identify_over({"coefficient": "bend", "values": [1.0, 100.0], "episodes": 2,
-                           "then": [{"coefficient": "stretch", "values": [1e-9, 1e-4]}]})
-    cfg = load_train_config("tiny_physics_rod", over)
-    assert cfg.identify.then == [{"coefficient": "stretch", "values": [1e-9, 1e-4], "extend": 0}]
-    run = tmp_path / "run"
-    logs: list = []
-    s = train(cfg, lift_dataset, run, max_iterations=0, log=lambda *a, **k: logs.append(a[0]))
-    ident = json.loads((run / "identify.json").read_text())
-    assert s["identified"] == ident and ident["coefficient"] == "bend" and len(ident["then"]) == 1
-    second = ident["then"][0]
-    assert second["coefficient"] == "stretch" and second["episodes"] == ident["episodes"]
-    assert [r["value"] for r in second["rows"]] == pytest.approx([1e-9, 1e-4])
-    losses = [r["val_loss"] for r in second["rows"]]
-    assert all(math.isfinite(v) for v in losses) and losses[0] != losses[1]  # the stretch changes the rollouts
-    # the second grid ran with the bending already chosen: its row at the trained stretch (1e-9, the
-    # config's) scores as the first grid's row at the chosen bending
-    chosen_row = next(r for r in ident["rows"] if r["value"] == ident["chosen"])
-    assert losses[0] == pytest.approx(chosen_row["val_loss"], rel=1e-9)
-    sd = read_checkpoint(run / "checkpoint.pt")["state_dict"]
-    assert float(sd["effects.terms.physics.log_bend"]) == pytest.approx(math.log(ident["chosen"]), rel=1e-6)
-    assert float(sd["effects.terms.physics.log_stretch"]) == pytest.approx(math.log(second["chosen"]), rel=1e-6)
-    assert [m.split(" (")[0] for m in logs if m.startswith("identify: ")] == [
-        f"identify: bend = {ident['chosen']:g}", f"identify: stretch = {second['chosen']:g}"]
 
 
 def test_a_non_finite_gradient_skips_the_step_and_keeps_the_weights():

@@ -129,7 +129,7 @@ def test_network_contribution_is_zero_for_the_priors_and_its_penalty_pulls_it_ba
     assert float(c0.detach()) > 0
     cfg = load_train_config("tiny", {"loss": {"network_weight": 10.0}})
     z = c0.new_zeros(())
-    terms = {"img": z, "silhouette": z, "depth": z, "points": z, "momentum": z, "network": c0}
+    terms = {"img": z, "depth": z, "points": z, "momentum": z, "network": c0}
     loss = total_loss(terms, cfg)
     assert float(loss.detach()) == pytest.approx(10.0 * float(c0.detach()))
     assert float(total_loss({k: v for k, v in terms.items() if k != "network"}, cfg)) == 0.0  # validation: no term
