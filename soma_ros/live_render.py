@@ -5,8 +5,8 @@ at every op; a render thread in the same process competes for it. A render in it
 process has its own interpreter and shares nothing but memory with the step. Measured
 on a quiet 2-core AMD EPYC (13,000 splats, three 320x240 cameras,
 ``python -m benchmarks.bench_live --only rates --cameras 3``), it did not change the
-node's sustained rates (16.1 against 16.5 steps/s, 9.3 image sets/s both): the step's
-wait inside the node is not the render thread's. It is therefore off by default
+node's sustained rates (24.9 steps/s and 10.0 image sets/s either way): the step's
+wait inside the node is mostly not the render thread's. It is therefore off by default
 (``render_process`` parameter of the node).
 
 :class:`RenderProcess` owns one child process (nothing of the parent's threads, ROS

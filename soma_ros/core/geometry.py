@@ -130,8 +130,8 @@ def sym3_eigh(A: torch.Tensor, init: Optional[torch.Tensor] = None, tol: float =
         since every Jacobi step is one. Eigenvalues are not sorted.
 
     For a batch of small matrices this is faster than ``torch.linalg.eigh``, whose CPU cost is
-    one LAPACK call per matrix (13,000 float64 matrices on one core: about 15 against 36 ms); repeated eigenvalues (isotropic splats) need
-    no special case. Sweeps stop when every off-diagonal entry is below ``tol`` times the
+    one LAPACK call per matrix (13,000 float64 matrices on one core: about 15 against 36 ms);
+    repeated eigenvalues (isotropic splats) need no special case. Sweeps stop when every off-diagonal entry is below ``tol`` times the
     matrix's Frobenius norm.
     """
     if A.ndim != 3 or A.shape[1:] != (3, 3):

@@ -471,7 +471,7 @@ class SomaSimNode(Node):
             with self.sub_js.handle:
                 wait_set.clear_entities()
                 wait_set.add_subscription(self.sub_js.handle)
-                wait_set.wait(int(min(services_period_s, max(0.0, next_services - t0)) * 1e9))
+                wait_set.wait(int(max(0.0, next_services - t0) * 1e9))  # until the services are due
                 taken = (self.sub_js.handle.take_message(JointState, False)
                          if self.sub_js.handle.pointer in wait_set.get_ready_entities("subscription") else None)
             if taken is not None:

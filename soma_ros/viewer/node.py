@@ -101,12 +101,13 @@ class NodeSource:
     def _pull(self, key, msg_type, topic: str, qos) -> None:
         self._pulled[key] = self.pull_node.create_subscription(msg_type, topic, lambda _msg: None, qos)
 
+    def _store(self, key, msg) -> None:
+        with self._lock:
+            self._latest[key] = msg
+            self._seen[key] = self._seen.get(key, 0) + 1
+
     def _keep(self, key):
-        def cb(msg) -> None:
-            with self._lock:
-                self._latest[key] = msg
-                self._seen[key] = self._seen.get(key, 0) + 1
-        return cb
+        return lambda msg: self._store(key, msg)
 
     def _discover(self) -> None:
         """Subscribe to every camera the node publishes (and the real one of the same name)."""
@@ -130,7 +131,7 @@ class NodeSource:
         if sub is not None:
             with sub.handle:
                 while (got := sub.handle.take_message(sub.msg_type, False)) is not None:
-                    self._keep(key)(got[0])
+                    self._store(key, got[0])
         return self._latest.get(key)
 
     def _take(self, key, seen_before: dict):
