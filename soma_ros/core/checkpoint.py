@@ -51,7 +51,7 @@ from .graph import LevelGraphs
 from .hierarchy import Hierarchy
 from .simulator import Simulator
 
-__all__ = ["CHECKPOINT_FORMAT", "save_checkpoint", "load_checkpoint", "read_checkpoint", "content_checksum",
+__all__ = ["CHECKPOINT_FORMAT", "save_checkpoint", "load_checkpoint", "read_checkpoint", "content_checksum", "verify_checksum",
            "save_train_state", "load_train_state", "previous_state_path"]
 
 CHECKPOINT_FORMAT = "soma_ros.simulator/1"
@@ -105,7 +105,9 @@ def content_checksum(payload: dict) -> str:
     return "sha256:" + h.hexdigest()
 
 
-def _verify(payload: dict, path: Path, what: str) -> None:
+def verify_checksum(payload: dict, path: Union[str, Path], what: str) -> None:
+    """Check ``payload`` (as loaded from ``path``) against its stored "checksum": a ValueError naming
+    the file when they differ; a warning (not an error) for a file written without one."""
     stored = payload.get("checksum")
     if stored is None:
         warnings.warn(f"{path}: {what} written without a content checksum; its content is not verified",
@@ -184,7 +186,7 @@ def read_checkpoint(path: Union[str, Path], map_location: Union[str, torch.devic
     for key in ("model_config", "state_dict", "hierarchy", "graphs", "extra"):
         if key not in payload:
             raise ValueError(f"{path}: checkpoint misses {key!r}")
-    _verify(payload, path, "checkpoint")
+    verify_checksum(payload, path, "checkpoint")
     return payload
 
 
@@ -257,7 +259,7 @@ def load_train_state(path: Union[str, Path], fmt: str, log=print) -> Optional[di
             payload = _torch_load(p, "cpu", "training state")
             if not isinstance(payload, dict) or payload.get("format") != fmt:
                 raise ValueError(f"{p}: not a soma_ros training state (expected format {fmt!r})")
-            _verify(payload, p, "training state")
+            verify_checksum(payload, p, "training state")
         except ValueError as exc:
             errors.append(str(exc))
             continue

@@ -36,8 +36,6 @@ with ``torch.load(weights_only=True)``); ``static`` needs only a scene.
 
 from __future__ import annotations
 
-import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,7 +44,8 @@ from typing import Callable, Iterable, Iterator, Optional
 import numpy as np
 import torch
 
-from soma_ros.core.checkpoint import load_checkpoint, read_checkpoint
+from soma_ros.core.checkpoint import (atomic_torch_save, content_checksum, load_checkpoint, read_checkpoint,
+                                     verify_checksum)
 from soma_ros.core.simulator import SceneContext, Simulator
 from soma_ros.core.splats import Splats
 from soma_ros.core.spring_mass import SpringMass, SpringMassConfig
@@ -274,19 +273,13 @@ def fit_spring_mass(
 
 
 def save_spring_mass(path: Path, model: SpringMass, info: Optional[dict] = None) -> Path:
-    """Write a fitted spring-mass model atomically (weights-only loadable)."""
+    """Write a fitted spring-mass model atomically (weights-only loadable), with a content checksum
+    that :func:`load_model` verifies."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     extra = {k: v for k, v in (info or {}).items() if k != "history"}
     payload = model.to_payload(_plain(extra))
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(payload, f)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    payload["checksum"] = content_checksum(payload)
+    atomic_torch_save(payload, path)
     return path
 
 
@@ -327,6 +320,7 @@ def load_model(path: str | Path, network: bool = True) -> RolloutModel:
         if not network:
             raise ValueError(f"{p}: a spring-mass model has no network to switch off (prior_only needs a simulator "
                              "checkpoint)")
+        verify_checksum(payload, p, "spring-mass model")
         return SpringMassModel(SpringMass.from_payload(payload), payload.get("extra", {}))
     read_checkpoint(p)  # validates the simulator format with a clear error
     return SimulatorModel(load_checkpoint(p).set_network(network))

@@ -128,6 +128,22 @@ def test_payload_roundtrip():
         SpringMassConfig(num_nodes=1).validate()
 
 
+def test_saved_model_is_verified_on_load(tmp_path):
+    """spring_mass.pt carries a content checksum: a flipped weight is refused with one line naming the file."""
+    from soma_ros.evaluation.baselines import load_model, save_spring_mass
+
+    path = save_spring_mass(tmp_path / "spring_mass.pt", SpringMass(SpringMassConfig(num_nodes=20, total_mass=0.1)))
+    assert load_model(path).__class__.__name__ == "SpringMassModel"
+    payload = torch.load(path, weights_only=True)
+    assert payload["checksum"].startswith("sha256:")
+    name = next(k for k, v in payload["state_dict"].items() if v.numel())
+    payload["state_dict"][name] = payload["state_dict"][name] + 1.0
+    torch.save(payload, path)
+    with pytest.raises(ValueError, match=r"spring_mass\.pt: spring-mass model is corrupt") as err:
+        load_model(path)
+    assert "\n" not in str(err.value)
+
+
 class _SyntheticEpisode:
     """The parts of soma_ros.data.dataset.EpisodeData that fit_spring_mass reads, with 'observed' points
     made by a spring-mass model of known parameters (full point sets, not partial views)."""
