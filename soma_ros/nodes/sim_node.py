@@ -53,6 +53,7 @@ import rclpy
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, JointState, PointCloud2
 from soma_msgs.msg import SimStatus
@@ -123,6 +124,16 @@ def _one_line(exc: BaseException) -> str:
     if not isinstance(exc, ValueError):
         text = f"{type(exc).__name__}: {text}" if text else type(exc).__name__
     return text[:300] or type(exc).__name__
+
+
+def _parameter_error(exc: ParameterException) -> str:
+    """rclpy's refusal of a ``--ros-args -p`` value as one line that starts with the parameter's
+    name (rclpy words it "<reason>: <name>")."""
+    text = " ".join(str(exc).split())
+    reason, sep, name = text.rpartition(": ")
+    if "of type 'INTEGER', expecting type 'DOUBLE'" in reason:
+        reason += " (write a double with a decimal point, e.g. 30.0)"
+    return (f"parameter '{name}': {reason}" if sep and name and " " not in name else text)[:300]
 
 
 def _float_param(node: Node, name: str, default: float, desc: str, lo: float, hi: float, read_only: bool = False) -> float:
@@ -637,6 +648,10 @@ def run(argv: Optional[list[str]] = None) -> int:
         node.serve(executor, stop)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except ParameterException as exc:
+        # a start-up parameter of the wrong type or out of its declared range: a usage error
+        print(f"soma_sim_node: error: {_parameter_error(exc)}", file=sys.stderr)
+        return 2
     except (FileNotFoundError, ValueError) as exc:
         print(f"soma_sim_node: error: {exc}", file=sys.stderr)
         return 1
