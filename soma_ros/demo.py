@@ -128,9 +128,13 @@ def main(argv=None) -> int:
     eval_dir = out / "eval"
     _run(py + ["soma_ros.cli", "eval", "--checkpoint", str(ckpt), "--data", str(data), "--split", "test",
                "--out", str(eval_dir)], env, "open-loop evaluation of the held-out episodes")
+    from .data.bags import BagError
     from .demo_report import write_report
 
-    report = write_report(out, held_bag, live_bag, eval_dir, cams, seconds=time.time() - t_start)
+    try:
+        report = write_report(out, held_bag, live_bag, eval_dir, cams, seconds=time.time() - t_start)
+    except BagError as exc:
+        raise SystemExit(f"[demo] report: {exc}") from None
     _log(f"report: {report}")
     _log(f"done in {time.time() - t_start:.0f} s")
     return 0

@@ -10,13 +10,13 @@ import numpy as np
 
 
 def _read_live(bag: Path, cams: Sequence[str]) -> dict:
-    from rosbags.highlevel import AnyReader
-
-    from .bagtypes import typestore
     from .core.cloud_layout import cloud_to_records
+    from .data.bags import check_interface_versions, open_reader
 
     out: dict = {"status": [], "js": [], "images": {c: [] for c in cams}, "splat_counts": []}
-    with AnyReader([bag], default_typestore=typestore()) as r:
+    r = open_reader(bag)
+    try:
+        check_interface_versions(r, bag)
         for conn, t, raw in r.messages():
             m = r.deserialize(raw, conn.msgtype)
             stamp = int(m.header.stamp.sec) * 10**9 + int(m.header.stamp.nanosec)
@@ -31,6 +31,8 @@ def _read_live(bag: Path, cams: Sequence[str]) -> dict:
                     if conn.topic == f"/soma/{c}/image_raw":
                         img = np.asarray(m.data, dtype=np.uint8).reshape(m.height, m.width, 3)
                         out["images"][c].append((stamp, img))
+    finally:
+        r.close()
     return out
 
 

@@ -287,6 +287,26 @@ def open_reader(bag: Path):
     return reader
 
 
+def check_interface_versions(reader, bag: Path, package: str = "soma_msgs") -> None:
+    """Refuse, in one BagError naming the bag and the topic, a ``package`` message type that
+    the bag's recorder defined differently from this install (another soma_msgs version):
+    its RIHS01 type hash differs, or this install has no such type. Bags that carry no
+    RIHS01 hash (rosbag2 before Iron) are not checked."""
+    from soma_ros.bagtypes import typestore
+
+    store = typestore()
+    for conn in reader.connections:
+        if not conn.msgtype.startswith(f"{package}/"):
+            continue
+        differs = conn.msgtype not in store.types
+        digest = getattr(conn, "digest", "") or ""
+        if not differs and digest.startswith("RIHS01_"):
+            differs = digest != store.hash_rihs01(conn.msgtype)
+        if differs:
+            raise BagError(f"{Path(bag).name}: {conn.topic} [{conn.msgtype}] was recorded with another {package} "
+                           f"version than this install's; read it with the soma_ros that recorded it, or record it again")
+
+
 def list_topics(bag: Path) -> dict[str, str]:
     reader = open_reader(Path(bag))
     try:
