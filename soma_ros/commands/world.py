@@ -108,6 +108,8 @@ def register(subparsers) -> None:
     p.add_argument("--config", default="world/default", metavar="YAML",
                    help="world config (default: config/world/default.yaml)")
     p.add_argument("--overwrite", action="store_true", help="replace this dataset's existing outputs in DIR")
+    p.add_argument("--workers", type=int, default=1, metavar="N",
+                   help="episodes generated at once, one process each (default: 1); the bags do not depend on it")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -138,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
             frames=args.frames,
             overwrite=args.overwrite,
             progress=not args.quiet,
+            workers=args.workers,
         )
     except FileExistsError as exc:  # reported by the CLI as a one-line error
         raise RuntimeError(str(exc)) from None

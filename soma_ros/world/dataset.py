@@ -279,8 +279,13 @@ def generate_dataset(
     frames: Optional[int] = None,
     overwrite: bool = False,
     progress: bool = True,
+    workers: int = 1,
 ) -> dict:
-    """Generate ``episodes`` episodes (default: the preset's) into ``out_dir``; returns the manifest."""
+    """Generate ``episodes`` episodes (default: the preset's) into ``out_dir``; returns the manifest.
+
+    ``workers``: episodes generated at once, each in its own process (every episode is seeded by
+    ``(seed, index)`` alone, so the bags do not depend on it; the manifest lists them in order).
+    """
     pre = cfg.preset(preset)
     cfg.object(obj_name)
     if task is not None and task not in cfg.tasks.get(obj_name, []):
@@ -291,6 +296,8 @@ def generate_dataset(
     n = int(episodes) if episodes is not None else pre.episodes
     if n < 1:
         raise ValueError("episodes must be >= 1")
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1 (got {workers})")
     if frames is not None and frames < 8:
         raise ValueError(f"frames must be >= 8 (got {frames}): shorter episodes would move the arm implausibly fast")
     out_dir = Path(out_dir)
@@ -323,16 +330,32 @@ def generate_dataset(
         "robot": rc.name,
         "generator": "soma world (MuJoCo reference world)",
     }
-    bar = tqdm(range(n), desc=f"soma world {obj_name}/{preset}", unit="episode", disable=not progress)
-    for i in bar:
-        entry = generate_episode(
-            cfg, obj_name, preset, i, seed, eff_names, out_dir, storage=storage, task=task, frames=frames, ik=ik,
-            progress=progress,
-        )
-        entry["split"] = split[i]
+    bar = tqdm(total=n, desc=f"soma world {obj_name}/{preset}", unit="episode", disable=not progress)
+
+    def add(entry: dict) -> None:
+        entry["split"] = split[names.index(entry["name"])]
         manifest["episodes"].append(entry)
+        manifest["episodes"].sort(key=lambda e: names.index(e["name"]))
+        bar.update(1)
         bar.set_postfix(last=f"{entry['seconds_to_generate']:.1f}s", task=entry["task"])
         with open(out_dir / MANIFEST, "w", encoding="utf-8") as fh:  # written after every episode
             json.dump(manifest, fh, indent=1)
+
+    common = dict(storage=storage, task=task, frames=frames)
+    if workers == 1 or n == 1:
+        for i in range(n):
+            add(generate_episode(cfg, obj_name, preset, i, seed, eff_names, out_dir, ik=ik, progress=progress,
+                                 **common))
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        # spawn: a fresh interpreter per worker (MuJoCo's GL context and torch threads do not survive a fork)
+        with ProcessPoolExecutor(max_workers=min(workers, n), mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = [pool.submit(generate_episode, cfg, obj_name, preset, i, seed, eff_names, out_dir, **common)
+                       for i in range(n)]
+            for fut in as_completed(futures):
+                add(fut.result())
+    bar.close()
     return manifest
 

@@ -299,6 +299,23 @@ def test_same_seed_same_episode(worlds, cfg, tmp_path):
     assert not np.array_equal(p1, first[OBJECT_POINTS_TOPIC][0][1].data)  # another seed, another placement
 
 
+def test_workers_write_the_same_bags_and_manifest_in_order(cfg, tmp_path):
+    one = generate_dataset(cfg, "rope", "tiny", tmp_path / "w1", episodes=3, seed=4, frames=8, progress=False)
+    two = generate_dataset(cfg, "rope", "tiny", tmp_path / "w2", episodes=3, seed=4, frames=8, progress=False,
+                           workers=2)
+    on_disk = json.loads((tmp_path / "w2" / "manifest.json").read_text())
+    for m in (one, two, on_disk):
+        for e in m["episodes"]:
+            e.pop("seconds_to_generate")
+    assert [e["name"] for e in two["episodes"]] == ["rope_000", "rope_001", "rope_002"]
+    assert one == two == on_disk
+    for e in one["episodes"]:
+        a, b = (next((tmp_path / w / e["bag"]).glob("*.db3")).read_bytes() for w in ("w1", "w2"))
+        assert a == b, e["name"]
+    with pytest.raises(ValueError, match="workers must be >= 1"):
+        generate_dataset(cfg, "rope", "tiny", tmp_path / "w0", episodes=1, frames=8, progress=False, workers=0)
+
+
 def test_mcap_storage(cfg, tmp_path):
     m = generate_dataset(cfg, "rope", "tiny", tmp_path, episodes=1, seed=2, storage="mcap", frames=8, progress=False)
     bag_dir = tmp_path / m["episodes"][0]["bag"]
