@@ -40,6 +40,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="override a config value, e.g. --set schedule.iters_per_epoch=10 (YAML value; repeatable)")
     p.add_argument("--max-iterations", type=int, default=None,
                    help="stop after this iteration (resumable partial run)")
+    p.add_argument("--max-minutes", type=float, default=None, metavar="M",
+                   help="stop once the training loop has run M minutes (iterations and validations, not the "
+                        "scene set-up), validating and checkpointing the weights reached (resumable)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -80,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
         cfg.data.strict = True
     data = Path(args.data[0]) if len(args.data) == 1 else [Path(p) for p in args.data]
     summary = train(cfg, data, Path(args.out), scene_dir=Path(args.scene) if args.scene else None,
-                    max_iterations=args.max_iterations)
+                    max_iterations=args.max_iterations,
+                    max_seconds=None if args.max_minutes is None else 60.0 * args.max_minutes)
     import os
 
     if int(os.environ.get("RANK", "0")) == 0:

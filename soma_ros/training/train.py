@@ -942,12 +942,18 @@ def _weights_checksum(sim: Simulator) -> float:
 
 
 def train(cfg: TrainConfig, data_dir: Path, out_dir: Path, scene_dir: Optional[Path] = None,
-          max_iterations: Optional[int] = None, log=print) -> dict:
+          max_iterations: Optional[int] = None, log=print, max_seconds: Optional[float] = None) -> dict:
     """Run (or resume) a training run; returns a summary dict (rank 0's view).
 
     ``max_iterations``: stop after this global iteration (a partial run that can be resumed;
-    for tests and time-boxed jobs). ``log``: where one-line messages go (rank 0 only).
+    for tests and time-boxed jobs). ``max_seconds``: stop once the training loop (iterations and
+    their validations, from the first iteration on; not the scene set-up) has run this long, then
+    validate the weights reached (unless just validated) and checkpoint them: a time-boxed run whose
+    kept checkpoint has seen its last weights; resumable like a ``max_iterations`` stop.
+    ``log``: where one-line messages go (rank 0 only).
     """
+    if max_seconds is not None and not max_seconds > 0:
+        raise ValueError(f"max_seconds must be > 0 (got {max_seconds})")
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1") or 1))
     dist = DistInfo.from_env(cfg.device)
     say = log if dist.is_main else (lambda *a, **k: None)
@@ -957,7 +963,7 @@ def train(cfg: TrainConfig, data_dir: Path, out_dir: Path, scene_dir: Optional[P
         data_dir = Path(data_dir)
     out_dir = Path(out_dir)
     try:
-        return _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist, say)
+        return _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist, say, max_seconds)
     finally:
         if dist.distributed and torch.distributed.is_initialized():
             torch.distributed.destroy_process_group()
@@ -984,7 +990,8 @@ def _set_up_scene(cfg, scene_dir, scene_out, train_refs, val_refs, robot, obj, m
             f"{time.time() - t0:.1f} s")
 
 
-def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, say) -> dict:
+def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, say,
+           max_seconds: Optional[float] = None) -> dict:
     t_start = time.time()
     if dist.is_main:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -1170,6 +1177,8 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         bar = tqdm(total=stop, initial=start_it, desc="soma train", unit="it", dynamic_ncols=True)
     it = start_it
     used_episodes: list[str] = []
+    t_loop = time.time()
+    timed_out = False
     while it < stop:
         epoch = it // ipe
         info = stage_at(cfg, epoch)
@@ -1215,15 +1224,27 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
             bar.set_postfix(loss=f"{float(loss.detach()):.4f}", stage=info.stage, steps=len(plan.frames),
                             val=f"{last_val:.4f}" if last_val is not None else "-")
         end_of_epoch = it % ipe == 0
-        if end_of_epoch and ((it // ipe) % cfg.run.val_every_epochs == 0 or it >= total):
+        validated = end_of_epoch and ((it // ipe) % cfg.run.val_every_epochs == 0 or it >= total)
+        if validated:
             run_validation(it, it // ipe)
-        if end_of_epoch or it % cfg.run.checkpoint_every == 0 or it >= stop:
+        if max_seconds is not None and it < stop:
+            # every rank stops at the same iteration: rank 0's clock decides
+            elapsed = dist.all_reduce_sum([time.time() - t_loop if dist.is_main else 0.0])[0]
+            if elapsed >= max_seconds:
+                timed_out = True
+                if not validated:
+                    run_validation(it, it // ipe)
+        if end_of_epoch or it % cfg.run.checkpoint_every == 0 or it >= stop or timed_out:
             checkpoint(it, it // ipe, final=it >= total)
+        if timed_out:
+            say(f"stopped at iteration {it} of {total}: the training time limit ({max_seconds:g} s) is reached")
+            break
     if bar is not None:
         bar.close()
     if runlog is not None:
         runlog.plot(out_dir / "loss.png", f"{cfg.name}: {len(train_names)} train / {len(val_names)} val episodes")
     summary = {"out": str(out_dir), "iterations": it, "total_iterations": total, "complete": it >= total,
+               "timed_out": timed_out, "loop_seconds": round(time.time() - t_loop, 1),
                "world_size": dist.world, "val_loss_untrained": first_val, "val_loss": last_val,
                "val_history": val_history,
                "best_val_loss": best_val, "best_iteration": best_iteration, "kept": cfg.run.keep, "kept_score": best_score, "resumed_from": resumed_from, "seconds": round(time.time() - t_start, 1),

@@ -456,6 +456,33 @@ def test_keep_best_points_keeps_the_lowest_validation_point_distance(lift_datase
     assert s2["best_iteration"] == s2["total_iterations"] == 5 and s2["kept"] == "best"
 
 
+def test_a_time_boxed_run_stops_validates_what_it_reached_and_resumes(lift_dataset, tmp_path):
+    """``max_seconds`` (``soma train --max-minutes``): the loop stops at the first iteration past the
+    limit, mid-epoch, validates and checkpoints the weights reached there; the same command without
+    the limit resumes and completes the run."""
+    from soma_ros.core.checkpoint import read_checkpoint
+    from soma_ros.training.config import load_train_config
+    from soma_ros.training.train import train
+
+    over = {"scene": {"photometric_iters": 3, "num_splats": 400},
+            "schedule": {"iters_per_epoch": 4, "stage1": {"epochs": 1, "stride": 2, "length_start": 2},
+                         "stage2": {"epochs": 0, "window": 3}},
+            "run": {"val_episodes": 1, "val_frame_stride": 6}}
+    run = tmp_path / "run"
+    logs: list = []
+    s = train(load_train_config("tiny", over), lift_dataset, run, log=lambda *a, **k: logs.append(a[0]),
+              max_seconds=1e-3)
+    assert s["timed_out"] and not s["complete"] and s["iterations"] == 1 and s["total_iterations"] == 4
+    assert [h["iteration"] for h in s["val_history"]] == [0, 1]
+    assert any("stopped at iteration 1 of 4: the training time limit" in m for m in logs), logs
+    assert read_checkpoint(run / "checkpoint_last.pt")["extra"]["iteration"] == 1
+    done = train(load_train_config("tiny", over), lift_dataset, run, log=lambda *a, **k: None)
+    assert done["complete"] and not done["timed_out"] and done["resumed_from"] == [1]
+    assert [h["iteration"] for h in done["val_history"]] == [0, 1, 4]
+    with pytest.raises(ValueError, match="max_seconds must be > 0"):
+        train(load_train_config("tiny", over), lift_dataset, tmp_path / "r2", max_seconds=0)
+
+
 def test_keep_best_score_selects_on_every_validation_task_and_writes_their_curves(lift_dataset, tmp_path):
     """``run.keep: best_score`` (the tiny config's): the kept weights are those of the lowest selection
     score -- image loss, scored-region depth and point distance per validation task relative to the
