@@ -12,21 +12,23 @@
 #      on the test split, at the same time, every 2nd frame;
 #   4. a table: iterations per second, the validation curve, held-out figures.
 # Output: $OUT/log.txt and $OUT/run.tar.gz (log.csv, val_tasks.csv/.png, loss.png, summary.json,
-# the two evaluations' JSON). $OUT defaults to /tmp/gpu_train_out.
+# the two evaluations' JSON). $OUT defaults to runs/gpu_train; the dataset and run go to a temporary
+# folder ($WORK, default from mktemp).
 #
 # From the repository root, with the packages of `make setup` (or carried wheels in .whl/ and the
 # GL loaders in .gl/, which the script installs first when present):
-#   OUT=/tmp/gpu_train bash benchmarks/gpu_train.sh
+#   OUT=DIR bash benchmarks/gpu_train.sh
 # Optional: PYTHON (python3), EPISODES (14), FRAMES (100), MINUTES (4), IPE (40), QUICK=1 (a CPU
 # smoke test: tiny preset, cpu device, a few seconds of training).
 set -u
 set -o pipefail
 
 cd "$(dirname "$0")/.."
-OUT="${OUT:-/tmp/gpu_train_out}"
+OUT="${OUT:-runs/gpu_train}"
 mkdir -p "$OUT"
 PY="${PYTHON:-python3}"
-WORK="${WORK:-/tmp/gpu_train_work}"
+WORK="${WORK:-$(mktemp -d)}"
+SITE="$WORK/site"; mkdir -p "$WORK"
 export PYTHONUNBUFFERED=1 OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}" MUJOCO_GL=egl
 if ls .gl/*.deb >/dev/null 2>&1; then
     for f in .gl/*.deb; do dpkg -x "$f" /; done
@@ -35,8 +37,8 @@ if ls .gl/*.deb >/dev/null 2>&1; then
         && export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
 fi
 if ls .whl/*.whl >/dev/null 2>&1; then
-    "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-        && export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
+    "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$SITE" .whl/*.whl \
+        && export PYTHONPATH="$SITE${PYTHONPATH:+:$PYTHONPATH}"
 fi
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 
@@ -57,7 +59,7 @@ main() {
     nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv 2>/dev/null || echo "(no nvidia-smi)"
     echo "CPU: $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2-) | nproc $(nproc) | commit $(git rev-parse --short HEAD 2>/dev/null || echo '?')"
     "$PY" -c "import sys, torch; print('python', sys.version.split()[0], '| torch', torch.__version__, '| cuda', torch.cuda.is_available())"
-    rm -rf "$WORK"; mkdir -p "$WORK"
+    rm -rf "$DATA" "$RUN"
 
     section "1. soma world: rope, preset $PRESET, $EPISODES episodes of $FRAMES frames"
     timeout 240 "${SOMA[@]}" world --object rope --preset "$PRESET" --episodes "$EPISODES" --frames "$FRAMES" \
