@@ -849,6 +849,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--long-run", default="", help="run the long section on this trained RUN (checkpoint.pt + scene/)")
     ap.add_argument("--long-param", action="append", default=[], metavar="NAME:=VALUE",
                     help="an extra soma_sim_node parameter for the long run (repeatable), e.g. passive_exempt_grasped:=false")
+    ap.add_argument("--param", action="append", default=[], metavar="NAME:=VALUE",
+                    help="an extra soma_sim_node parameter for the latency, rates and flood sections "
+                         "(repeatable), e.g. render_process:=true")
     ap.add_argument("--flood-s", type=float, default=30.0)
     ap.add_argument("--flood-hz", type=float, default=1000.0)
     ap.add_argument("--only", nargs="+", default=["engine", "latency", "rates", "long", "flood"],
@@ -856,9 +859,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--json", default="", help="also write the results here")
     ap.add_argument("--workdir", default="", help="where the untrained runs go (default: a temporary folder)")
     args = ap.parse_args(argv)
-    bad = [q for q in args.long_param if ":=" not in q]
-    if bad:
-        ap.error(f"--long-param {bad[0]!r}: expected NAME:=VALUE")
+    for flag, given in (("--long-param", args.long_param), ("--param", args.param)):
+        bad = [q for q in given if ":=" not in q]
+        if bad:
+            ap.error(f"{flag} {bad[0]!r}: expected NAME:=VALUE")
     torch.set_num_threads(1)
 
     from soma_ros.core.scenes import write_untrained_run
@@ -898,7 +902,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return run, live, poser, x0, grasp, closing, hover, in_rope
 
     base = ["device:=" + args.device, f"torch_threads:={args.torch_threads}", f"rate_hz:={args.rate_hz}",
-            f"render_rate_hz:={args.render_rate_hz}", "cameras:=[cam_front]"]
+            f"render_rate_hz:={args.render_rate_hz}"] + args.param + ["cameras:=[cam_front]"]
+    if args.param:
+        say(f"node parameters: {' '.join(args.param)}")
 
     if {"engine", "latency", "rates", "flood"} & set(args.only):
         t = time.monotonic()
@@ -995,7 +1001,7 @@ def format_report(r: dict) -> str:
     if {"latency", "rates", "flood"} & set(r):
         lines.append(f"scene: {a['splats']} splats, {a['model']} model (untrained), cameras {a['width']}x{a['height']}, "
                      f"rate_hz {a['rate_hz']:.0f}, render_rate_hz {a['render_rate_hz']:.0f}, splat_rate_hz 5, "
-                     f"device {a['device']}")
+                     f"device {a['device']}" + (f", {' '.join(a['param'])}" if a.get("param") else ""))
     lines += [f"{r.get('load_before', '')} before, {r.get('load_after', '')} after ({r.get('seconds', 0):.0f} s)", ""]
     row = "{:<44} {:>14} {:>12}"
     lines.append(row.format("measure", "value", "target"))

@@ -457,34 +457,47 @@ class SomaSimNode(Node):
                 self._set_frame(self.joints.sample())
         return n
 
-    def serve(self, executor, stop: threading.Event, services_period_s: float = 0.05) -> None:
+    def serve(self, executor, stop: threading.Event, others_period_s: float = 1.0) -> None:
         """The main thread's loop until ``stop`` is set or the context ends: wait for /joint_states
-        and take one message at a time from the subscription (at most ``input_rate_hz`` a second,
-        so a flood cannot starve the steps), and give the executor the node's other work (its
-        parameter services) every ``services_period_s``.
+        or a request to one of the node's services (its parameter services), take one message at
+        a time from the subscription (at most ``input_rate_hz`` a second, so a flood cannot starve
+        the steps), and hand a service request to the executor when one is waiting. The executor
+        also gets the node's remaining work (QoS event handlers) every ``others_period_s``.
 
         Messages are taken from the subscription directly, not through ``executor.spin_once``:
-        rclpy's executor spends ~0.2-0.3 ms of Python per call under the interpreter lock, and
-        at the input rate that lock time, taken while the physics and render threads need the
-        lock between their torch calls, roughly doubled the wall time of a step in the node
-        (docs/benchmarks.md, "Live node").
+        each ``spin_once`` builds a wait set of every entity of the node in Python (about 3 ms
+        under the interpreter lock here), and that lock time, taken while the physics and render
+        threads need the lock between their torch calls, inflated the wall time of a step in the
+        node (docs/benchmarks.md, "Live node").
         """
+        from contextlib import ExitStack
+
         from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 
         period = 1.0 / self.input_rate_hz
-        wait_set = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
-        next_services = time.monotonic()
+        services = list(self.services)
+        wait_set = _rclpy.WaitSet(1, 0, 0, 0, len(services), 0, self.context.handle)
+        next_others = time.monotonic()
         while not stop.is_set() and self.context.ok():
             t0 = time.monotonic()
-            if t0 >= next_services:
+            if t0 >= next_others:
                 executor.spin_once(timeout_sec=0)
-                next_services = t0 + services_period_s
-            with self.sub_js.handle:
+                next_others = t0 + others_period_s
+            with ExitStack() as held:
+                held.enter_context(self.sub_js.handle)
+                for srv in services:
+                    held.enter_context(srv.handle)
                 wait_set.clear_entities()
                 wait_set.add_subscription(self.sub_js.handle)
-                wait_set.wait(int(max(0.0, next_services - t0) * 1e9))  # until the services are due
+                for srv in services:
+                    wait_set.add_service(srv.handle)
+                # at most 0.1 s, so that a stop request is seen promptly
+                wait_set.wait(int(min(0.1, max(0.0, next_others - t0)) * 1e9))
                 taken = (self.sub_js.handle.take_message(JointState, False)
                          if self.sub_js.handle.pointer in wait_set.get_ready_entities("subscription") else None)
+                requested = bool(services) and bool(wait_set.get_ready_entities("service"))
+            if requested:
+                executor.spin_once(timeout_sec=0)
             if taken is not None:
                 self._on_joint_state(*taken)
                 rest = period - (time.monotonic() - t0)
