@@ -15,7 +15,9 @@ from __future__ import annotations
 import argparse
 import base64
 import json
+import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -92,7 +94,9 @@ def screenshot(url: str, out: Path, wait_s: float = 20.0, size: tuple[int, int] 
     exe = find_browser(browser)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix="soma_chromium_") as profile:
+    # the browser's helper processes may still be writing its profile as it goes away:
+    # removing that scratch folder must not fail the screenshot
+    with tempfile.TemporaryDirectory(prefix="soma_chromium_", ignore_cleanup_errors=True) as profile:
         cmd = [exe, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "--remote-debugging-port=0",
                f"--window-size={size[0]},{size[1]}", "about:blank"]
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, process_group=0)
@@ -137,14 +141,28 @@ def screenshot(url: str, out: Path, wait_s: float = 20.0, size: tuple[int, int] 
                                         png, stable_region, deadline)
             out.write_bytes(png)
         finally:
-            if proc.poll() is None:
-                proc.terminate()
-                try:
-                    proc.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait(timeout=10)
+            _stop_group(proc)
     return out
+
+
+def _stop_group(proc: subprocess.Popen, timeout_s: float = 10.0) -> None:
+    """Stop the browser and its helper processes (its own process group): SIGTERM, then SIGKILL."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        try:
+            os.killpg(proc.pid, sig)
+        except (ProcessLookupError, PermissionError):
+            pass
+        try:
+            proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            continue
+        deadline = time.monotonic() + timeout_s  # the helpers of the group
+        while time.monotonic() < deadline:
+            try:
+                os.killpg(proc.pid, 0)
+            except (ProcessLookupError, PermissionError):
+                return
+            time.sleep(0.05)
 
 
 def main(argv=None) -> int:
