@@ -478,15 +478,14 @@ class SomaSimNode(Node):
         services = list(self.services)
         wait_set = _rclpy.WaitSet(1, 0, 0, 0, len(services), 0, self.context.handle)
         next_others = time.monotonic()
-        while not stop.is_set() and self.context.ok():
-            t0 = time.monotonic()
-            if t0 >= next_others:
-                executor.spin_once(timeout_sec=0)
-                next_others = t0 + others_period_s
-            with ExitStack() as held:
-                held.enter_context(self.sub_js.handle)
-                for srv in services:
-                    held.enter_context(srv.handle)
+        with ExitStack() as held:  # the handles stay valid while this loop waits on them
+            for handle in [self.sub_js.handle] + [srv.handle for srv in services]:
+                held.enter_context(handle)
+            while not stop.is_set() and self.context.ok():
+                t0 = time.monotonic()
+                if t0 >= next_others:
+                    executor.spin_once(timeout_sec=0)
+                    next_others = t0 + others_period_s
                 wait_set.clear_entities()
                 wait_set.add_subscription(self.sub_js.handle)
                 for srv in services:
@@ -495,14 +494,13 @@ class SomaSimNode(Node):
                 wait_set.wait(int(min(0.1, max(0.0, next_others - t0)) * 1e9))
                 taken = (self.sub_js.handle.take_message(JointState, False)
                          if self.sub_js.handle.pointer in wait_set.get_ready_entities("subscription") else None)
-                requested = bool(services) and bool(wait_set.get_ready_entities("service"))
-            if requested:
-                executor.spin_once(timeout_sec=0)
-            if taken is not None:
-                self._on_joint_state(*taken)
-                rest = period - (time.monotonic() - t0)
-                if rest > 0:
-                    stop.wait(rest)
+                if wait_set.get_ready_entities("service"):
+                    executor.spin_once(timeout_sec=0)
+                if taken is not None:
+                    self._on_joint_state(*taken)
+                    rest = period - (time.monotonic() - t0)
+                    if rest > 0:
+                        stop.wait(rest)
 
     # ------------------------------------------------------------------- step
     def _on_step(self) -> None:
