@@ -3,7 +3,7 @@
 The kernels implement the same per-pixel rule as the pure-torch reference of
 :mod:`soma_ros.core.render_raster` (which stays the reference and the
 fallback): EWA projection (forward only), tile binning, front-to-back
-compositing and its analytic backward. :func:`soma_ros.core.render.render`
+compositing, with the analytic backward of projection and compositing. :func:`soma_ros.core.render.render`
 uses them on CPU float32/float64 tensors when ``RenderConfig.raster`` is
 ``"auto"`` (the default) or ``"compiled"``.
 
@@ -54,7 +54,7 @@ _SRC = Path(__file__).with_name("kernels") / "raster.cpp"
 # (branch-free selects and reductions); -march=native is dropped when unsupported.
 _FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-fno-math-errno", "-fno-trapping-math", "-fopenmp-simd"]
 _ARCH = ["-march=native"]
-_ABI = 1
+_ABI = 2
 
 _c_i64 = ctypes.c_int64
 _c_ptr = ctypes.c_void_p
@@ -145,6 +145,9 @@ def _declare(lib: ctypes.CDLL) -> None:
         f.restype = _c_i64
         f.argtypes = [_c_i64, _c_i64] + [_c_ptr] * 5 + [_c_i64, _c_i64] + [real] * 5 + [ctypes.c_int] \
             + [_c_ptr] * 9
+        f = getattr(lib, f"soma_project_bwd_{suf}")
+        f.restype = None
+        f.argtypes = [_c_i64] + [_c_ptr] * 6 + [_c_i64, _c_i64, ctypes.c_int] + [_c_ptr] * 8
         f = getattr(lib, f"soma_bin_count_{suf}")
         f.restype = _c_i64
         f.argtypes = [_c_i64] + [_c_ptr] * 6 + [_c_i64] * 4 + [_c_ptr] * 3
@@ -231,22 +234,10 @@ def _c(t: torch.Tensor, dtype=None) -> torch.Tensor:
 
 # ----------------------------------------------------------------- projection
 @torch.no_grad()
-def project(means: torch.Tensor, covs: torch.Tensor, opacities: torch.Tensor, cameras, cfg):
-    """EWA projection without gradients; same result as ``render.project_gaussians``.
-
-    means [N, 3], covs [N, 3, 3], opacities [N] (CPU, float32/64) -> ``Projected`` with V rows.
-    """
-    from .render_raster import Projected
-
+def _project_raw(means, covs, opacities, w2c, Km, width: int, height: int, cfg):
+    """One call of the projection kernel on contiguous tensors -> the V rows of every output."""
     dt = means.dtype
-    lib = _lib()
-    N, C = means.shape[0], len(cameras)
-    means_c, covs_c, op_c = _c(means), _c(covs), _c(opacities)
-    w2c = _c(cameras.world_to_cam, dt)
-    Km = _c(cameras.K, dt)
-    if tuple(w2c.shape) != (C, 4, 4) or tuple(Km.shape) != (C, 3, 3):
-        raise ValueError(f"project: cameras need world_to_cam [C,4,4] and K [C,3,3], got "
-                         f"{list(w2c.shape)}, {list(Km.shape)}")
+    N, C = means.shape[0], w2c.shape[0]
     R = C * N
     cam = torch.empty(R, dtype=torch.long)
     sidx = torch.empty(R, dtype=torch.long)
@@ -254,13 +245,72 @@ def project(means: torch.Tensor, covs: torch.Tensor, opacities: torch.Tensor, ca
     conic = torch.empty(R, 3, dtype=dt)
     cov2d = torch.empty(R, 3, dtype=dt)
     depth, op, smin, pmax = (torch.empty(R, dtype=dt) for _ in range(4))
-    V = getattr(lib, f"soma_project_{_suffix(dt)}")(
-        N, C, _ptr(means_c), _ptr(covs_c), _ptr(op_c), _ptr(w2c), _ptr(Km), cameras.width, cameras.height,
+    V = getattr(_lib(), f"soma_project_{_suffix(dt)}")(
+        N, C, _ptr(means), _ptr(covs), _ptr(opacities), _ptr(w2c), _ptr(Km), width, height,
         cfg.near_plane, cfg.far_plane, cfg.eps2d, cfg.sigma_cutoff, cfg.alpha_min, int(cfg.clamp_jacobian),
         _ptr(cam), _ptr(sidx), _ptr(mean2d), _ptr(conic), _ptr(cov2d), _ptr(depth), _ptr(op), _ptr(smin),
         _ptr(pmax))
-    return Projected(cam_idx=cam[:V], splat_idx=sidx[:V], mean2d=mean2d[:V], conic=conic[:V],
-                     cov2d=cov2d[:V], depth=depth[:V], opacity=op[:V], smin=smin[:V], pmax=pmax[:V])
+    return tuple(t[:V] for t in (cam, sidx, mean2d, conic, cov2d, depth, op, smin, pmax))
+
+
+class _ProjectKernelFn(torch.autograd.Function):
+    """Differentiable in means, covs and opacities through mean2d, conic, depth and opacity."""
+
+    @staticmethod
+    def forward(ctx, means, covs, opacities, w2c, Km, width, height, cfg):
+        means, covs = _c(means), _c(covs)
+        out = _project_raw(means, covs, _c(opacities), w2c, Km, width, height, cfg)
+        cam, sidx, mean2d, conic, cov2d, depth, op, smin, pmax = out
+        ctx.mark_non_differentiable(cam, sidx, cov2d, smin, pmax)
+        ctx.save_for_backward(means, covs, w2c, Km, cam, sidx, conic)
+        ctx.dims = (opacities.shape[0], width, height, int(cfg.clamp_jacobian))
+        return out
+
+    @staticmethod
+    def backward(ctx, _gc, _gs, g_mean2d, g_conic, _gcov, g_depth, g_op, _gsm, _gpm):
+        means, covs, w2c, Km, cam, sidx, conic = ctx.saved_tensors
+        N, W, H, clamp = ctx.dims
+        dt = means.dtype
+        g_means = torch.zeros(N, 3, dtype=dt)
+        g_covs = torch.zeros(N, 3, 3, dtype=dt)
+        g_opac = torch.zeros(N, dtype=dt)
+        gm, gc, gd, go = (_c(t, dt) for t in (g_mean2d, g_conic, g_depth, g_op))
+        getattr(_lib(), f"soma_project_bwd_{_suffix(dt)}")(
+            cam.shape[0], _ptr(cam), _ptr(sidx), _ptr(means), _ptr(covs), _ptr(w2c), _ptr(Km), W, H, clamp,
+            _ptr(conic), _ptr(gm), _ptr(gc), _ptr(gd), _ptr(go), _ptr(g_means), _ptr(g_covs), _ptr(g_opac))
+        need = ctx.needs_input_grad
+        return (g_means if need[0] else None, g_covs if need[1] else None, g_opac if need[2] else None,
+                None, None, None, None, None)
+
+
+def project(means: torch.Tensor, covs: torch.Tensor, opacities: torch.Tensor, cameras, cfg):
+    """EWA projection, the same result as ``render.project_gaussians``, differentiable in
+    means, covs and opacities (through mean2d, conic, depth and opacity; cov2d, smin and
+    pmax only select and carry no gradient, as in the reference).
+
+    means [N, 3], covs [N, 3, 3], opacities [N] (CPU, float32/64) -> ``Projected`` with V rows.
+    The cameras are constants: a camera that needs gradients goes through the reference.
+    """
+    from .render_raster import Projected
+
+    dt = means.dtype
+    N, C = means.shape[0], len(cameras)
+    if tuple(means.shape) != (N, 3) or tuple(covs.shape) != (N, 3, 3) or tuple(opacities.shape) != (N,):
+        raise ValueError(f"project: expected means [N,3], covs [N,3,3], opacities [N]; got "
+                         f"{list(means.shape)}, {list(covs.shape)}, {list(opacities.shape)}")
+    w2c = _c(cameras.world_to_cam.detach(), dt)
+    Km = _c(cameras.K.detach(), dt)
+    if tuple(w2c.shape) != (C, 4, 4) or tuple(Km.shape) != (C, 3, 3):
+        raise ValueError(f"project: cameras need world_to_cam [C,4,4] and K [C,3,3], got "
+                         f"{list(w2c.shape)}, {list(Km.shape)}")
+    ins = (means, covs, opacities)
+    if torch.is_grad_enabled() and any(t.requires_grad for t in ins):
+        out = _ProjectKernelFn.apply(*ins, w2c, Km, cameras.width, cameras.height, cfg)
+    else:
+        out = _project_raw(*(_c(t) for t in ins), w2c, Km, cameras.width, cameras.height, cfg)
+    cam, sidx, mean2d, conic, cov2d, depth, op, smin, pmax = out
+    return Projected(cam_idx=cam, splat_idx=sidx, mean2d=mean2d, conic=conic, cov2d=cov2d, depth=depth,
+                     opacity=op, smin=smin, pmax=pmax)
 
 
 # ----------------------------------------------------------------- binning

@@ -294,8 +294,8 @@ def _use_kernels(means: torch.Tensor, cfg: RenderConfig) -> bool:
 def _render_torch(means, covs, colors, opacities, cameras, bg, cfg) -> RenderOutput:
     C = len(cameras)
     kernels = _use_kernels(means, cfg)
-    needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (means, covs, opacities))
-    if kernels and not needs_grad:
+    camera_grad = torch.is_grad_enabled() and (cameras.world_to_cam.requires_grad or cameras.K.requires_grad)
+    if kernels and not camera_grad:
         proj = raster_kernel.project(means, covs, opacities, cameras, cfg)
     else:
         proj = project_gaussians(means, covs, opacities, cameras, cfg)
@@ -331,7 +331,9 @@ def _render_torch(means, covs, colors, opacities, cameras, bg, cfg) -> RenderOut
         name, n_isect = "torch", plan.n_isect
     if img.shape != (C, cameras.height, cameras.width, 5):
         raise RuntimeError(f"render: compositor returned {list(img.shape)}, expected [C, H, W, 5]")
-    return _finish(img[..., :3], img[..., 3], img[..., 4], bg, cfg, name, V, n_isect)
+    # one split (its backward is one concatenation) rather than three slices (three zeroed images)
+    premult, dsum, alpha = img.split([3, 1, 1], dim=-1)
+    return _finish(premult, dsum[..., 0], alpha[..., 0], bg, cfg, name, V, n_isect)
 
 
 def _render_gsplat(means, covs, colors, opacities, cameras, bg, cfg) -> RenderOutput:

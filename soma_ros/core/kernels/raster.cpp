@@ -1,4 +1,4 @@
-// CPU kernels of the Gaussian-splat renderer: EWA projection (forward only),
+// CPU kernels of the Gaussian-splat renderer: EWA projection and its backward,
 // tile binning, front-to-back compositing and its analytic backward.
 //
 // Plain C ABI on caller-allocated, C-contiguous buffers (no torch headers), so
@@ -15,6 +15,9 @@
 //              -> cam [C*N] int64, sidx [C*N] int64, mean2d [C*N,2],
 //                 conic [C*N,3], cov2d [C*N,3], depth, opac, smin, pmax [C*N];
 //              returns V (rows 0..V-1 are filled, ordered by camera then splat)
+//   project_bwd: grads of mean2d [V,2], conic [V,3], depth [V], opac [V] ->
+//              grads of means [N,3], covs [N,3,3], opac [N] (accumulated; zeroed
+//              by the caller)
 //   bin_count: mean2d [V,2], conic [V,3], cov2d [V,3], pmax [V], depth [V],
 //              cam [V] int64 -> order [V] int32, box [V,4] int32,
 //              counts [n_tiles] int32 (zeroed by the caller); returns M
@@ -131,6 +134,94 @@ int64_t project(int64_t N, int64_t C, const T* means, const T* covs, const T* op
         }
     }
     return V;
+}
+
+// Backward of project: upstream gradients of the V visible rows (mean2d [V,2],
+// conic [V,3], depth [V], opacity [V]) -> accumulated (caller-zeroed) gradients
+// of means [N,3], covs [N,3,3] and opacities [N]. Recomputes the forward terms
+// from (cam, sidx); cov2d, smin and pmax carry no gradient (as in the torch
+// reference, where they only select). The covariance gradient is the one of the
+// reference's entry selection (s00, s01, s02, s11, s12, s22 of R Sigma R^T),
+// pulled back as R^T G R.
+template <typename T>
+void project_bwd(int64_t V, const int64_t* cam, const int64_t* sidx, const T* means, const T* covs,
+                 const T* w2c, const T* Kmat, int64_t W, int64_t H, int clamp_jac, const T* conic,
+                 const T* g_mean2d, const T* g_conic, const T* g_depth, const T* g_opac, T* g_means,
+                 T* g_covs, T* g_opacs) {
+    for (int64_t r = 0; r < V; ++r) {
+        const int64_t ci = cam[r], n = sidx[r];
+        const T* M = w2c + 16 * ci;
+        const T R[9] = {M[0], M[1], M[2], M[4], M[5], M[6], M[8], M[9], M[10]};
+        const T* Kc = Kmat + 9 * ci;
+        const T fx = Kc[0], fy = Kc[4], cx = Kc[2], cy = Kc[5];
+        const T* m = means + 3 * n;
+        const T x = R[0] * m[0] + R[1] * m[1] + R[2] * m[2] + M[3];
+        const T y = R[3] * m[0] + R[4] * m[1] + R[5] * m[2] + M[7];
+        const T z = R[6] * m[0] + R[7] * m[1] + R[8] * m[2] + M[11];
+        const T inv_z = T(1) / z;
+        const T xr = x * inv_z, yr = y * inv_z;
+        T xz = xr, yz = yr;
+        bool xin = true, yin = true;
+        if (clamp_jac) {
+            const T tan_fovx = T(0.5) * T(W) / fx, tan_fovy = T(0.5) * T(H) / fy;
+            const T lim_xp = (T(W) - cx) / fx + T(0.3) * tan_fovx, lim_xn = cx / fx + T(0.3) * tan_fovx;
+            const T lim_yp = (T(H) - cy) / fy + T(0.3) * tan_fovy, lim_yn = cy / fy + T(0.3) * tan_fovy;
+            xz = std::min(std::max(xr, -lim_xn), lim_xp);
+            yz = std::min(std::max(yr, -lim_yn), lim_yp);
+            xin = xr > -lim_xn && xr < lim_xp;
+            yin = yr > -lim_yn && yr < lim_yp;
+        }
+        const T j00 = fx * inv_z, j02 = -fx * xz * inv_z;
+        const T j11 = fy * inv_z, j12 = -fy * yz * inv_z;
+        const T* S = covs + 9 * n;
+        T RS[9], Sc[9];
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j)
+                RS[3 * i + j] = R[3 * i] * S[j] + R[3 * i + 1] * S[3 + j] + R[3 * i + 2] * S[6 + j];
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j)
+                Sc[3 * i + j] = RS[3 * i] * R[3 * j] + RS[3 * i + 1] * R[3 * j + 1] + RS[3 * i + 2] * R[3 * j + 2];
+        const T s00 = Sc[0], s01 = Sc[1], s02 = Sc[2], s11 = Sc[4], s12 = Sc[5], s22 = Sc[8];
+        // conic Q = inv(Sigma2d): dL/dSigma2d = -Q G Q, G = [[ga, gb/2], [gb/2, gc]]
+        const T qa = conic[3 * r], qb = conic[3 * r + 1], qc = conic[3 * r + 2];
+        const T ga = g_conic[3 * r], gb = T(0.5) * g_conic[3 * r + 1], gc = g_conic[3 * r + 2];
+        const T p00 = qa * ga + qb * gb, p01 = qa * gb + qb * gc;
+        const T p10 = qb * ga + qc * gb, p11 = qb * gb + qc * gc;
+        const T gxx = -(p00 * qa + p01 * qb);
+        const T gxy = T(-2) * (p00 * qb + p01 * qc);
+        const T gyy = -(p10 * qb + p11 * qc);
+        // Sigma2d = J Sc J^T on the reference's entries
+        T G[9] = {gxx * j00 * j00, gxy * j00 * j11, T(2) * gxx * j00 * j02 + gxy * j00 * j12,
+                  T(0), gyy * j11 * j11, gxy * j02 * j11 + T(2) * gyy * j11 * j12,
+                  T(0), T(0), gxx * j02 * j02 + gxy * j02 * j12 + gyy * j12 * j12};
+        const T g_j00 = gxx * (T(2) * j00 * s00 + T(2) * j02 * s02) + gxy * (j11 * s01 + j12 * s02);
+        const T g_j02 = gxx * (T(2) * j00 * s02 + T(2) * j02 * s22) + gxy * (j11 * s12 + j12 * s22);
+        const T g_j11 = gyy * (T(2) * j11 * s11 + T(2) * j12 * s12) + gxy * (j00 * s01 + j02 * s12);
+        const T g_j12 = gyy * (T(2) * j11 * s12 + T(2) * j12 * s22) + gxy * (j00 * s02 + j02 * s22);
+        // world covariance: dL/dSigma = R^T G R
+        T GR[9];
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j)
+                GR[3 * i + j] = G[3 * i] * R[j] + G[3 * i + 1] * R[3 + j] + G[3 * i + 2] * R[6 + j];
+        T* gS = g_covs + 9 * n;
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j)
+                gS[3 * i + j] += R[i] * GR[j] + R[3 + i] * GR[3 + j] + R[6 + i] * GR[6 + j];
+        // mean: u = fx x / z + cx, v = fy y / z + cy, J(x/z, y/z, 1/z), depth = z
+        const T gu = g_mean2d[2 * r], gv = g_mean2d[2 * r + 1];
+        const T g_xz = xin ? -g_j02 * fx * inv_z : T(0);
+        const T g_yz = yin ? -g_j12 * fy * inv_z : T(0);
+        const T g_iz = gu * fx * x + gv * fy * y + g_j00 * fx - g_j02 * fx * xz + g_j11 * fy -
+                       g_j12 * fy * yz + g_xz * x + g_yz * y;
+        const T gx = gu * fx * inv_z + g_xz * inv_z;
+        const T gy = gv * fy * inv_z + g_yz * inv_z;
+        const T gz = g_depth[r] - g_iz * inv_z * inv_z;
+        T* gm = g_means + 3 * n;
+        gm[0] += R[0] * gx + R[3] * gy + R[6] * gz;
+        gm[1] += R[1] * gx + R[4] * gy + R[7] * gz;
+        gm[2] += R[2] * gx + R[5] * gy + R[8] * gz;
+        g_opacs[n] += g_opac[r];
+    }
 }
 
 struct Grid {
@@ -460,6 +551,13 @@ void composite_bwd(int64_t V, int64_t K, const T* mean2d, const T* conic, const 
                           sigma_cutoff, alpha_min, clamp_jac, cam_out, sidx_out, mean2d, conic, cov2d,    \
                           depth, opac_out, smin_out, pmax_out);                                           \
     }                                                                                                     \
+    extern "C" void soma_project_bwd_##SUF(                                                               \
+        int64_t V, const int64_t* cam, const int64_t* sidx, const T* means, const T* covs, const T* w2c,   \
+        const T* Kmat, int64_t W, int64_t H, int clamp_jac, const T* conic, const T* g_mean2d,            \
+        const T* g_conic, const T* g_depth, const T* g_opac, T* g_means, T* g_covs, T* g_opacs) {          \
+        project_bwd<T>(V, cam, sidx, means, covs, w2c, Kmat, W, H, clamp_jac, conic, g_mean2d, g_conic,    \
+                       g_depth, g_opac, g_means, g_covs, g_opacs);                                        \
+    }                                                                                                     \
     extern "C" int64_t soma_bin_count_##SUF(int64_t V, const T* mean2d, const T* conic, const T* cov2d,   \
                                             const T* pmax, const T* depth, const int64_t* cam, int64_t C,  \
                                             int64_t W, int64_t H, int64_t tile, int32_t* order,           \
@@ -491,4 +589,4 @@ void composite_bwd(int64_t V, int64_t K, const T* mean2d, const T* conic, const 
 SOMA_RASTER_EXPORT(float, f32)
 SOMA_RASTER_EXPORT(double, f64)
 
-extern "C" int soma_raster_abi_version() { return 1; }
+extern "C" int soma_raster_abi_version() { return 2; }
