@@ -2,10 +2,10 @@
 
 The kernels implement the same per-pixel rule as the pure-torch reference of
 :mod:`soma_ros.core.render_raster` (which stays the reference and the
-fallback): EWA projection (forward only), tile binning, front-to-back
-compositing, with the analytic backward of projection and compositing. :func:`soma_ros.core.render.render`
-uses them on CPU float32/float64 tensors when ``RenderConfig.raster`` is
-``"auto"`` (the default) or ``"compiled"``.
+fallback): EWA projection, tile binning and front-to-back compositing,
+with analytic backward kernels for the projection and the compositing.
+:func:`soma_ros.core.render.render` uses them on CPU float32/float64 tensors
+when ``RenderConfig.raster`` is ``"auto"`` (the default) or ``"compiled"``.
 
 Build
 -----

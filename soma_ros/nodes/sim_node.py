@@ -218,9 +218,15 @@ class SomaSimNode(Node):
                                           "a reset not done within this is refused (the running scene is kept), s",
                                           0.1, 3600.0, read_only=True)
 
+        self.switch_interval_ms = _float_param(
+            self, "switch_interval_ms", 5.0,
+            "Python's thread switch interval (sys.setswitchinterval): how long a thread running Python "
+            "keeps the interpreter lock while another waits for it, ms", 0.05, 100.0, read_only=True)
+
         import torch
 
         torch.set_num_threads(int(self.get_parameter("torch_threads").value))
+        sys.setswitchinterval(self.switch_interval_ms / 1e3)
         gp = lambda n: self.get_parameter(n).value  # noqa: E731
         prefix = gp("topic_prefix").rstrip("/")
         self.world_frame, self.sim_frame = gp("world_frame"), gp("sim_frame")
