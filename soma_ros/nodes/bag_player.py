@@ -50,6 +50,7 @@ CAMERA_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage", "sen
 #: A recorded (stamp - receive time) within this bound is kept as latency by --restamp.
 MAX_RESTAMP_LATENCY_NS = 5_000_000_000
 JOINT_STATES_DEPTH = 100
+SUBSCRIBER_SETTLE_S = 0.3  # readiness must hold this long before playing (see wait_for_subscribers)
 OTHER_DEPTH = 10
 BEHIND_WARN_S = 0.05
 
@@ -148,7 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="skip the first S seconds of the bag")
     p.add_argument("--wait-for-subscribers", type=_non_negative_int, default=0, metavar="N",
                    help=f"before playing, wait until N subscribers matched on {JOINT_STATES} "
-                        "(and every QoS-compatible subscriber already in the graph on each played topic)")
+                        "(and every QoS-compatible subscriber already in the graph on each played topic, for 0.3 s)")
     p.add_argument("--wait-timeout", type=_positive_float, default=30.0, metavar="S",
                    help="give up waiting for subscribers after S seconds (exit 1)")
     stamp = p.add_mutually_exclusive_group()
@@ -334,24 +335,25 @@ class BagPlayer:
     # ------------------------------------------------------------ waiting
     def wait_for_subscribers(self, n: int, timeout: float) -> None:
         """Block until `n` subscribers matched on the main topic and every known subscriber on the others."""
-        from rclpy.qos import QoSCompatibility, qos_check_compatible
-
         main = JOINT_STATES if JOINT_STATES in self.publishers else self.topics[0].topic
         deadline = time.monotonic() + timeout
-
-        def compatible_subscribers(topic: str) -> int:
-            """Subscriptions in the graph this topic's publisher can match (QoS-incompatible ones never will)."""
-            offered = self.publishers[topic].qos_profile
-            return sum(1 for info in self.node.get_subscriptions_info_by_topic(topic)
-                       if qos_check_compatible(offered, info.qos_profile)[0] != QoSCompatibility.ERROR)
 
         def ready() -> bool:
             if self.publishers[main].get_subscription_count() < n:
                 return False
-            return all(pub.get_subscription_count() >= compatible_subscribers(topic)
-                       for topic, pub in self.publishers.items())
+            return self._all_matched()
 
-        while not ready():
+        # A node's subscriptions reach the graph one by one: the main topic can match before the
+        # same node's other subscriptions are known, so readiness must hold for a settle period.
+        ready_since: Optional[float] = None
+        while True:
+            now = time.monotonic()
+            if ready():
+                ready_since = now if ready_since is None else ready_since
+                if now - ready_since >= SUBSCRIBER_SETTLE_S:
+                    return
+            else:
+                ready_since = None
             if self.stop.is_set():
                 return
             if time.monotonic() >= deadline:
@@ -464,11 +466,26 @@ class BagPlayer:
         self.flush()
         return self.stats
 
+    def _all_matched(self) -> bool:
+        """Every played topic's publisher matched all QoS-compatible subscriptions in the graph."""
+        from rclpy.qos import QoSCompatibility, qos_check_compatible
+
+        for topic, pub in self.publishers.items():
+            offered = pub.qos_profile
+            known = sum(1 for info in self.node.get_subscriptions_info_by_topic(topic)
+                        if qos_check_compatible(offered, info.qos_profile)[0] != QoSCompatibility.ERROR)
+            if pub.get_subscription_count() < known:
+                return False
+        return True
+
     def flush(self, timeout_s: float = 2.0) -> None:
-        """Give reliable subscribers time to acknowledge the last messages before the node goes away."""
+        """Before the node goes away: let subscriptions that joined the graph during playback match (a
+        latched message still reaches them) and reliable subscribers acknowledge the last messages."""
         from rclpy.duration import Duration
 
         deadline = time.monotonic() + timeout_s
+        while not self._all_matched() and time.monotonic() < deadline:
+            time.sleep(0.02)
         for pub in self.publishers.values():
             left = deadline - time.monotonic()
             if left <= 0:

@@ -216,7 +216,7 @@ def test_player_into_recorder_round_trip(tmp_path, ros_env):
                                                   "--topics", "/joint_states", "/robot_description"],
                     ros_env, name="player") as player, \
          RosProcess(RECORDER, ["--out", str(out), "--topics", "/joint_states", "/robot_description",
-                               "--max-messages", str(JS_N + 1), "--duration", "60"], ros_env, name="recorder") as rec:
+                               "--max-messages", str(JS_N + 1), "--duration", "40"], ros_env, name="recorder") as rec:
         assert rec.wait(timeout=60) == 0, rec.output() + player.output()
         assert player.wait(timeout=30) == 0, player.output()
     got, conns = _read_bag(out)
