@@ -77,3 +77,42 @@ class FixedRateLoop:
                 next_t += skipped * self.period
             if next_t > now:
                 self._stop.wait(next_t - now)
+
+
+class StepPhase:
+    """Where the physics loop is in its period, so that other loops can start right after a step.
+
+    A step is a few thousand small torch calls; each one gives up the interpreter lock and
+    takes it back. Python work of another thread that overlaps the step (building messages,
+    a render's set-up) makes the step wait for the lock at those points. Loops that call
+    :meth:`after_step` before their work start it when a step has just ended, so that their
+    interpreter-bound part falls in the idle part of the physics period.
+
+    The physics loop calls :meth:`begin` and :meth:`end` around each step.
+    """
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._running = False
+        self._ended = 0
+
+    def begin(self) -> None:
+        with self._cond:
+            self._running = True
+
+    def end(self) -> None:
+        with self._cond:
+            self._running = False
+            self._ended += 1
+            self._cond.notify_all()
+
+    @property
+    def steps_ended(self) -> int:
+        return self._ended
+
+    def after_step(self, timeout: float) -> bool:
+        """Block until the next step ends (True), or at most ``timeout`` seconds (False: no step
+        ended, e.g. the physics loop is held by a reset)."""
+        with self._cond:
+            n = self._ended
+            return self._cond.wait_for(lambda: self._ended != n, timeout)

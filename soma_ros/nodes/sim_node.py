@@ -79,7 +79,7 @@ from .conversions import (
     splats_to_cloud,
     stamp_from_ns,
 )
-from .loops import FixedRateLoop
+from .loops import FixedRateLoop, StepPhase
 from .robot_tf import RobotTf, camera_frame_id
 from .qos import JOINT_STATES_QOS, SENSOR_OUT_QOS, STATUS_QOS
 
@@ -159,6 +159,10 @@ class SomaSimNode(Node):
         p("render_process", False, ParameterDescriptor(
             description="render the images in a child process (CPU device, soma_ros.live_render) instead of a "
                         "thread of the node", read_only=True))
+        p("align_to_steps", True, ParameterDescriptor(
+            description="start each render, splat cloud and /tf publish right after a physics step ends, so that "
+                        "their Python work does not overlap the step's (images wait at most one step period)",
+            read_only=True))
         p("publish_robot_tf", True, ParameterDescriptor(
             description="publish the robot's links on /tf and /robot_description as robot_state_publisher does "
                         "(false when the real robot's robot_state_publisher runs beside the node)"))
@@ -228,6 +232,7 @@ class SomaSimNode(Node):
         torch.set_num_threads(int(self.get_parameter("torch_threads").value))
         sys.setswitchinterval(self.switch_interval_ms / 1e3)
         gp = lambda n: self.get_parameter(n).value  # noqa: E731
+        self.align_to_steps = bool(gp("align_to_steps"))
         prefix = gp("topic_prefix").rstrip("/")
         self.world_frame, self.sim_frame = gp("world_frame"), gp("sim_frame")
         ckpt, scene = gp("checkpoint"), gp("scene")
@@ -320,6 +325,7 @@ class SomaSimNode(Node):
         self._step_rate = RateMeter()
         self._image_rate = RateMeter()
         self._step_lock = threading.Lock()
+        self._phase = StepPhase()
         self._failure_resets = 0
         self._set_frame(None)
         self.loops = [FixedRateLoop("soma_step", self.rate_hz, self._on_step)]
@@ -513,7 +519,17 @@ class SomaSimNode(Node):
         # A reset waits for a running step: a step must not sample the joints before a reset
         # (say, the last trial's pose) and then apply them to the scene the reset brought.
         with self._step_lock:
-            self._step()
+            self._phase.begin()
+            try:
+                self._step()
+            finally:
+                self._phase.end()
+
+    def _after_step(self) -> None:
+        """With ``align_to_steps``: wait (at most one step period) until a step ends, so that this
+        loop's Python work does not overlap the next step (:class:`~.loops.StepPhase`)."""
+        if self.align_to_steps:
+            self._phase.after_step(1.0 / self.rate_hz)
 
     def _step(self) -> None:
         now = self.get_clock().now().nanoseconds
@@ -569,6 +585,7 @@ class SomaSimNode(Node):
 
     # ---------------------------------------------------------------- outputs
     def _on_render(self) -> None:
+        self._after_step()
         try:
             self._render_and_publish()
         except Exception as exc:  # noqa: BLE001 - a failed render must not stop the executor (and the node)
@@ -615,6 +632,7 @@ class SomaSimNode(Node):
         return out.rgb_u8().cpu().numpy(), out.depth.cpu().numpy(), cams, 0.0
 
     def _on_splats(self) -> None:
+        self._after_step()
         try:
             frame = self._frame
             splats = frame.state.to_splats(frame.template)
@@ -624,6 +642,7 @@ class SomaSimNode(Node):
             self.get_logger().error(f"splat publish failed: {exc}", throttle_duration_sec=5.0)
 
     def _on_tf(self) -> None:
+        self._after_step()
         try:
             frame = self._frame  # the robot links of the step the images show, with its stamp
             self.robot_tf.publish(frame.joint_vec, frame.stamp_ns)

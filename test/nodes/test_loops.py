@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from soma_ros.nodes.loops import FixedRateLoop
+from soma_ros.nodes.loops import FixedRateLoop, StepPhase
 
 
 def _wait(pred, timeout=10.0):
@@ -73,3 +73,43 @@ def test_stop_from_inside_the_loop_does_not_deadlock():
 def test_bad_rate_is_refused(rate):
     with pytest.raises(ValueError, match="rate must be > 0"):
         FixedRateLoop("x", rate, lambda: None)
+
+
+def test_step_phase_starts_other_work_right_after_a_step():
+    """A loop that calls after_step() starts its work in the idle part of the physics period:
+    after a step ended and before the next one begins."""
+    phase = StepPhase()
+    windows = []  # (begin, end) of every step
+
+    def step():
+        phase.begin()
+        t0 = time.monotonic()
+        time.sleep(0.005)
+        windows.append((t0, time.monotonic()))
+        phase.end()
+
+    starts = []
+
+    def other():
+        if phase.after_step(timeout=0.1):
+            starts.append(time.monotonic())
+
+    physics = FixedRateLoop("physics", 40.0, step).start()
+    worker = FixedRateLoop("other", 13.0, other).start()
+    assert _wait(lambda: len(starts) >= 6)
+    worker.stop()
+    physics.stop()
+    for s in starts:
+        inside = [w for w in windows if w[0] <= s <= w[1]]
+        assert not inside, (s, inside)
+        assert any(w[1] <= s for w in windows)
+
+
+def test_step_phase_wait_ends_at_its_timeout_without_steps():
+    phase = StepPhase()
+    t0 = time.monotonic()
+    assert phase.after_step(timeout=0.05) is False
+    assert 0.04 <= time.monotonic() - t0 < 1.0
+    phase.begin()
+    phase.end()
+    assert phase.steps_ended == 1
