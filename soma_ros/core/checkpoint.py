@@ -51,7 +51,8 @@ from .graph import LevelGraphs
 from .hierarchy import Hierarchy
 from .simulator import Simulator
 
-__all__ = ["CHECKPOINT_FORMAT", "save_checkpoint", "load_checkpoint", "read_checkpoint", "content_checksum", "verify_checksum",
+__all__ = ["CHECKPOINT_FORMAT", "save_checkpoint", "load_checkpoint", "read_checkpoint", "check_checkpoint_payload",
+           "simulator_from_payload", "content_checksum", "verify_checksum",
            "save_train_state", "load_train_state", "previous_state_path"]
 
 CHECKPOINT_FORMAT = "soma_ros.simulator/1"
@@ -180,6 +181,13 @@ def read_checkpoint(path: Union[str, Path], map_location: Union[str, torch.devic
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
     payload = _torch_load(path, map_location, "soma_ros checkpoint")
+    check_checkpoint_payload(payload, path)
+    return payload
+
+
+def check_checkpoint_payload(payload: Any, path: Union[str, Path]) -> None:
+    """Validate a dict loaded from ``path`` as a simulator checkpoint: its format, its keys and its
+    content checksum (a ValueError naming the file)."""
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         fmt = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
         raise ValueError(f"{path}: not a soma_ros simulator checkpoint (format {fmt!r}, expected {CHECKPOINT_FORMAT!r})")
@@ -187,7 +195,6 @@ def read_checkpoint(path: Union[str, Path], map_location: Union[str, torch.devic
         if key not in payload:
             raise ValueError(f"{path}: checkpoint misses {key!r}")
     verify_checksum(payload, path, "checkpoint")
-    return payload
 
 
 def load_checkpoint(path: Union[str, Path], map_location: Union[str, torch.device] = "cpu") -> Simulator:
@@ -195,7 +202,13 @@ def load_checkpoint(path: Union[str, Path], map_location: Union[str, torch.devic
 
     The extra dict is available as ``simulator.checkpoint_extra``.
     """
-    payload = read_checkpoint(path, map_location)
+    return simulator_from_payload(read_checkpoint(path, map_location), path, map_location)
+
+
+def simulator_from_payload(payload: dict, path: Union[str, Path],
+                           map_location: Union[str, torch.device] = "cpu") -> Simulator:
+    """The :class:`Simulator` of a checkpoint dict already read and checked
+    (:func:`read_checkpoint` or :func:`check_checkpoint_payload`); ``path`` names it in errors."""
     cfg = ModelConfig.from_dict(payload["model_config"], f"{Path(path).name}: model_config.")
     sim = Simulator(cfg)
     state = payload["state_dict"]

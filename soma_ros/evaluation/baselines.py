@@ -44,8 +44,8 @@ from typing import Callable, Iterable, Iterator, Optional
 import numpy as np
 import torch
 
-from soma_ros.core.checkpoint import (atomic_torch_save, content_checksum, load_checkpoint, read_checkpoint,
-                                     verify_checksum)
+from soma_ros.core.checkpoint import (atomic_torch_save, check_checkpoint_payload, content_checksum,
+                                     simulator_from_payload, verify_checksum)
 from soma_ros.core.simulator import SceneContext, Simulator
 from soma_ros.core.splats import Splats
 from soma_ros.core.spring_mass import SpringMass, SpringMassConfig
@@ -322,5 +322,5 @@ def load_model(path: str | Path, network: bool = True) -> RolloutModel:
                              "checkpoint)")
         verify_checksum(payload, p, "spring-mass model")
         return SpringMassModel(SpringMass.from_payload(payload), payload.get("extra", {}))
-    read_checkpoint(p)  # validates the simulator format with a clear error
-    return SimulatorModel(load_checkpoint(p).set_network(network))
+    check_checkpoint_payload(payload, p)  # the simulator format, with a clear error
+    return SimulatorModel(simulator_from_payload(payload, p).set_network(network))

@@ -224,14 +224,18 @@ def test_selection_score_weighs_every_task_and_geometry():
     assert selection_score({**ref, "lift": dict(ref["lift"], depth=float("nan"))}, ref, terms) == math.inf
 
 
-def test_prior_only_baseline_loads_a_checkpoint_with_the_network_off(tmp_path):
+def test_prior_only_baseline_loads_a_checkpoint_with_the_network_off(tmp_path, monkeypatch):
     from soma_ros.core.checkpoint import save_checkpoint
     from soma_ros.evaluation.baselines import VARIANTS, load_model
 
     sim = _tiny_sim(out_init_scale=1.0)
     sim.bind(synthetic_rope(300, seed=0, center=(0.0, 0.0, 0.0)))
     save_checkpoint(tmp_path / "checkpoint.pt", sim, extra={"iteration": 5})
+    loads = []
+    real_load = torch.load
+    monkeypatch.setattr(torch, "load", lambda *a, **k: loads.append(a[0]) or real_load(*a, **k))
     full, prior = load_model(tmp_path / "checkpoint.pt"), load_model(tmp_path, network=False)
+    assert len(loads) == 2, loads  # each model reads its file once
     assert full.describe()["network"] is True and prior.describe()["network"] is False
     assert prior.sim.network_enabled is False and full.sim.network_enabled is True
     assert "prior_only" in VARIANTS and {"full", "static", "state_only", "spring_mass", "img_only",
