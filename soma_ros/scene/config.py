@@ -18,8 +18,9 @@ class SceneConfig:
 
     ``num_splats``: target number of splats of G_0 (voxel size found by bisection
     on the fused object points; the paper uses 13,000). ``frames``: frames whose
-    masked depth is fused. ``photometric_iters``: renderer-based refinement of
-    colours / opacities / scales on those frames (0 = off).
+    masked depth is fused. ``photometric_*``: the photometric fit of
+    :func:`soma_ros.scene.splat_fit.fit_splats` on those frames' views (L1 + D-SSIM, alpha and
+    depth terms), positions and splat count fixed.
     ``table_*``: RANSAC on non-object, non-robot depth within ``table_radius`` m
     of the object. ``align_*``: per-episode initial state = G_0 moved onto the
     episode's frame-0 object points, rigid ICP then an as-rigid-as-possible
@@ -27,15 +28,17 @@ class SceneConfig:
     """
 
     source_episode: Optional[str] = None
-    frames: list[int] = field(default_factory=lambda: [0])
+    frames: list[int] = field(default_factory=lambda: [0])  # frames whose masked depth is fused (and fitted to)
     num_splats: int = 2000
     splat_scale_factor: float = 0.6
     opacity: float = 0.9
     erode_px: int = 0
-    photometric_iters: int = 60
-    photometric_lr_color: float = 0.02
-    photometric_lr_scale: float = 0.01
-    photometric_lr_opacity: float = 0.02
+    photometric_iters: int = 60  # renderer-based refinement of colours / opacities / scales on ``frames`` (0 = off)
+    photometric_lr_color: float = 0.02  # the fit's Adam rate for colours
+    photometric_lr_scale: float = 0.01  # ... for log-scales (0: the splats keep their initial, round shape)
+    photometric_lr_opacity: float = 0.02  # ... for opacity logits
+    photometric_aniso_reg: float = 0.0  # weight of mean relu(log(max / min scale) - log(photometric_max_aniso)) in the fit
+    photometric_max_aniso: float = 10.0  # axis ratio a splat may reach before photometric_aniso_reg costs (>= 1)
     table_radius: float = 0.4
     table_threshold: float = 0.004
     table_iters: int = 400
@@ -57,5 +60,9 @@ class SceneConfig:
                 raise ConfigError(f"{where}.{name}: must be finite and > 0, got {v}")
         if not 0 < self.opacity < 1:
             raise ConfigError(f"{where}.opacity: must lie in (0, 1), got {self.opacity}")
+        if not (math.isfinite(self.photometric_aniso_reg) and self.photometric_aniso_reg >= 0):
+            raise ConfigError(f"{where}.photometric_aniso_reg: must be finite and >= 0, got {self.photometric_aniso_reg}")
+        if not (math.isfinite(self.photometric_max_aniso) and self.photometric_max_aniso >= 1):
+            raise ConfigError(f"{where}.photometric_max_aniso: must be finite and >= 1, got {self.photometric_max_aniso}")
         if min(self.photometric_iters, self.align_icp_iters, self.align_nonrigid_iters, self.erode_px) < 0:
             raise ConfigError(f"{where}: iteration counts and erode_px must be >= 0")

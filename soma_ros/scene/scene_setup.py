@@ -163,20 +163,23 @@ def fit_table_and_gravity(ep: EpisodeData, center: torch.Tensor, cfg: SceneConfi
 
 # ------------------------------------------------------------------ photometric views
 def episode_views(ep: EpisodeData, frames) -> CaptureViews:
-    """Frames of an episode as capture views (V = frames x cameras); robot pixels ignored."""
-    imgs, masks, ign, K, c2w, names = [], [], [], [], [], []
+    """Frames of an episode as capture views (V = frames x cameras), with their measured
+    depth; robot pixels ignored."""
+    imgs, masks, ign, depth, K, c2w, names = [], [], [], [], [], [], []
     for t in frames:
         for c in range(ep.num_cameras):
             imgs.append(ep.rgb[t, c])
             masks.append(ep.loss_mask[t, c])
             ign.append(ep.robot_mask[t, c])
+            depth.append(ep.depth[t, c])
             K.append(ep.K[c])
             c2w.append(ep.cam_to_world[t, c])
             names.append(f"{ep.camera_names[c]}@{t}")
     from soma_ros.core.cameras import Cameras
 
     cams = Cameras.from_cam_to_world(torch.stack(K), torch.stack(c2w), ep.width, ep.height, names)
-    return CaptureViews(torch.stack(imgs), torch.stack(masks), cams, ignore=torch.stack(ign))
+    return CaptureViews(torch.stack(imgs), torch.stack(masks), cams, ignore=torch.stack(ign),
+                        depth=torch.stack(depth))
 
 
 # ------------------------------------------------------------------ the whole set-up
@@ -205,6 +208,7 @@ def setup_scene(ep: EpisodeData, cfg: SceneConfig, object_name: str, robot_confi
             # is built on this G_0), SH degree 0, every frame x camera view in each iteration
             fc = FitConfig(iters=cfg.photometric_iters, lr_means=0.0, lr_scales=cfg.photometric_lr_scale,
                            lr_quats=1e-3, lr_opacity=cfg.photometric_lr_opacity, lr_color=cfg.photometric_lr_color,
+                           aniso_reg=cfg.photometric_aniso_reg, max_aniso=cfg.photometric_max_aniso,
                            sh_degree=0, densify_until=0, min_opacity=0.0, max_scale=1e9, views_per_iter=0,
                            check_fraction=0.0, log_every=max(1, cfg.photometric_iters // 5))
             fitted = fit_splats(g0, views, fc, progress=progress)

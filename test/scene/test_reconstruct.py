@@ -111,3 +111,25 @@ def test_align_splats_moves_g0_onto_another_episode(two_episodes):
     assert len(moved) == len(g0) and torch.equal(moved.sh_dc, g0.sh_dc) and torch.equal(moved.mass, g0.mass)
     assert float(after) < 0.006 and float(after) < float(before)
     assert info["rms_nonrigid"] <= info["rms_rigid"] + 1e-4
+
+
+def test_setup_fit_uses_depth_and_bounds_anisotropy(two_episodes):
+    """The set-up's photometric fit has the episode's depth in its loss, and
+    ``photometric_aniso_reg`` keeps the fitted splats rounder than the unregularised fit."""
+    from soma_ros.core.robot import RobotModel
+    from soma_ros.data.dataset import load_dataset, prepare_episode
+    from soma_ros.scene.scene_setup import setup_scene
+    from soma_ros.training.config import load_train_config
+
+    robot = RobotModel.from_config("panda", dtype=torch.float64)
+    ratios = {}
+    for reg in (0.0, 1.0):
+        cfg = load_train_config("tiny", {"scene": {"photometric_iters": 30, "photometric_aniso_reg": reg,
+                                                   "photometric_max_aniso": 1.0}})
+        ep = prepare_episode(load_dataset(two_episodes)[0].bag, robot, cfg.data)
+        setup = setup_scene(ep, cfg.scene, "rope", "panda", 0.05, [0.02, 0.2])
+        hist = setup.info["photometric_history"]
+        assert all("depth" in h and math.isfinite(h["depth"]) for h in hist), hist[-1]
+        s = setup.bundle.splats.scales
+        ratios[reg] = float((s.max(1).values / s.min(1).values).median())
+    assert ratios[1.0] < ratios[0.0] and ratios[1.0] < 1.2, ratios
