@@ -37,7 +37,9 @@ class SceneConfig:
     photometric_lr_color: float = 0.02  # the fit's Adam rate for colours
     photometric_lr_scale: float = 0.01  # ... for log-scales (0: the splats keep their initial, round shape)
     photometric_lr_opacity: float = 0.02  # ... for opacity logits
-    photometric_aniso_reg: float = 0.0  # weight of mean relu(log(max / min scale) - log(photometric_max_aniso)) in the fit
+    photometric_aniso_reg: float = 0.0  # weight of mean relu(log(max / min scale) - log(photometric_max_aniso))
+    #   in the fit; 1 with photometric_max_aniso 1 keeps the splats nearly round, only their size fitted
+    #   (docs/design_decisions.md "Scene set-up")
     photometric_max_aniso: float = 10.0  # axis ratio a splat may reach before photometric_aniso_reg costs (>= 1)
     table_radius: float = 0.4
     table_threshold: float = 0.004
