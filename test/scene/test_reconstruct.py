@@ -122,11 +122,11 @@ def test_setup_fit_uses_depth_and_bounds_anisotropy(two_episodes):
     from soma_ros.training.config import load_train_config
 
     robot = RobotModel.from_config("panda", dtype=torch.float64)
+    ep = prepare_episode(load_dataset(two_episodes)[0].bag, robot, load_train_config("tiny").data)
     ratios = {}
     for reg in (0.0, 1.0):
         cfg = load_train_config("tiny", {"scene": {"photometric_iters": 30, "photometric_aniso_reg": reg,
                                                    "photometric_max_aniso": 1.0}})
-        ep = prepare_episode(load_dataset(two_episodes)[0].bag, robot, cfg.data)
         setup = setup_scene(ep, cfg.scene, "rope", "panda", 0.05, [0.02, 0.2])
         hist = setup.info["photometric_history"]
         assert all("depth" in h and math.isfinite(h["depth"]) for h in hist), hist[-1]
