@@ -107,6 +107,20 @@ splats ~1,400 fine clusters for a cloth, ~70 for the rope) unless
 splat (carry and covariance) plus the effects. See :mod:`.gnn` for the
 message-passing layout.
 
+Turned network frame (training augmentation)
+--------------------------------------------
+Table-top physics is the same under a turn about gravity, but the network reads and
+writes world-frame vectors, so from a handful of episodes it can learn direction-specific
+responses that do not carry to an object lying another way. ``init_state(...,
+network_yaw=theta)`` makes an episode whose network sees the world turned by theta about
+gravity (the table normal when gravity is zero): its vector inputs (anchor acceleration,
+F/m, relative velocity; the edge directions and relative velocities) are turned by Q, its
+acceleration output is turned back by Q^T and its deformation update D' = U' S V'^T by
+D = Q^T D' Q (computed as I + Q^T (D' - I) Q, so that no update stays exactly none). The
+physical terms, the bounds and the rest fixed point are untouched (the reference pass
+runs in the same frame). theta = 0
+(the default, and every rollout outside training) is the world frame, bit for bit.
+
 Differentiable end to end (``rollout`` under autograd); graph indices are
 constants. Call ``init_state`` again after the parameters change (each
 training rollout): the reference is computed with the weights of that moment
@@ -238,6 +252,7 @@ class Episode:
     ``residual_limit`` [N_l] (None at the root), ``reference`` [N_l, 14]
     network outputs at the initial state (None where no network runs),
     ``static_rest_vectors`` [E_l, 3] rest vectors of the static edges.
+    ``network_frame``: (Q [3, 3], q [4]) the turn the network sees the world in, or None.
     Splat constants: ``rest_covs`` [N0, 3, 3], ``rest_quats`` [N0, 4].
     """
 
@@ -255,6 +270,8 @@ class Episode:
     #: constants an effect builds once per episode (``EffectContext.cache``; e.g. the physics
     #: prior's nodes and constraints), shared by every state of the rollout
     cache: dict = field(default_factory=dict)
+    #: the network's frame (see "Turned network frame"): (Q [3, 3], q [4] its quaternion), None = world
+    network_frame: Optional[tuple[torch.Tensor, torch.Tensor]] = None
 
 
 @dataclass
@@ -388,6 +405,21 @@ def _quat_from_raw(o: torch.Tensor) -> torch.Tensor:
 def _gather_matvec(F: torch.Tensor, idx: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """F[idx] @ v per row: F [M, 3, 3], idx [N], v [N, 3] -> [N, 3]."""
     return (F.index_select(0, idx) * v[:, None, :]).sum(-1)
+
+
+def network_turn(scene: SceneContext, yaw: float) -> Optional[tuple[torch.Tensor, torch.Tensor]]:
+    """(Q [3, 3], q [4]): the turn by ``yaw`` rad about the scene's up axis (against gravity; the
+    table normal when gravity is zero), as a matrix and a unit quaternion (w, x, y, z); None for 0."""
+    yaw = float(yaw)
+    if not math.isfinite(yaw):
+        raise ValueError(f"network_yaw must be finite, got {yaw}")
+    if yaw == 0.0:
+        return None
+    g = scene.gravity
+    up = -g / g.norm() if float(g.norm()) > 1e-9 else scene.plane_normal
+    half = 0.5 * yaw
+    q = torch.cat([up.new_tensor([math.cos(half)]), math.sin(half) * up])
+    return quat_to_rotmat(q[None])[0], q
 
 
 class Simulator(nn.Module):
@@ -540,11 +572,14 @@ class Simulator(nn.Module):
             m.fit = bool(on)
 
     # ------------------------------------------------------------------ init
-    def init_state(self, splats: Splats, scene: SceneContext, reference: str = "initial") -> SimState:
+    def init_state(self, splats: Splats, scene: SceneContext, reference: str = "initial",
+                   network_yaw: float = 0.0) -> SimState:
         """Initial state (at rest: x_{-1} = x_0) of an episode starting from ``splats``.
 
         ``reference``: "initial" (the initial state is the static equilibrium under gravity and
         support: it stays put until disturbed) or "force_free" (see module docstring).
+        ``network_yaw`` (rad): the network sees the world turned by this angle about gravity
+        (module docstring, "Turned network frame"; a training augmentation); 0 = world frame.
         """
         if reference not in _REFERENCE_MODES:
             raise ValueError(f"init_state: reference must be one of {_REFERENCE_MODES}, got {reference!r}")
@@ -578,6 +613,7 @@ class Simulator(nn.Module):
             static_rest_vectors=[
                 rest[l].index_select(0, e[0]) - rest[l].index_select(0, e[1]) for l, e in enumerate(self.graphs.static)
             ],
+            network_frame=network_turn(scene, network_yaw),
         )
         state = self._rest_state(ep)
         ep.reference, state.dyn_edges = self._reference_pass(state)
@@ -760,7 +796,11 @@ class Simulator(nn.Module):
         feats = [edge_features(x, vel, ep.rest[l], static, 0.0, vs, ep.static_rest_vectors[l])]
         if has_dyn:
             feats.append(edge_features(x, vel, ep.rest[l], dyn, 1.0, vs))
-        ef = self.edge_norms[l](torch.cat(feats, dim=0) if has_dyn else feats[0])
+        ef = torch.cat(feats, dim=0) if has_dyn else feats[0]
+        if ep.network_frame is not None:  # the direction (0:3) and the relative velocity (4:7) turned
+            Qt = ep.network_frame[0].T
+            ef = torch.cat([ef[:, 0:3] @ Qt, ef[:, 3:4], ef[:, 4:7] @ Qt, ef[:, 7:]], dim=-1)
+        ef = self.edge_norms[l](ef)
         dense = self.graphs.dense[l]
         deg = self.graphs.static_degree[l]
         n_static = static.shape[1]
@@ -783,10 +823,12 @@ class Simulator(nn.Module):
         graph = MessageGraph(send, recv, n, k, mask, 1.0 / degf.clamp_min(1.0), (degf > 0).to(ef.dtype))
         return graph, ef
 
-    def _node_features(self, l, a_anchor, a_ext, v_rel, attrs) -> torch.Tensor:
+    def _node_features(self, l, a_anchor, a_ext, v_rel, attrs, turn=None) -> torch.Tensor:
         d = self.config.dynamics
-        f = torch.cat([a_anchor / d.accel_scale, a_ext / d.accel_scale, v_rel / d.velocity_scale, attrs], dim=-1)
-        return self.node_norms[l](f)
+        vec = torch.cat([a_anchor / d.accel_scale, a_ext / d.accel_scale, v_rel / d.velocity_scale], dim=-1)
+        if turn is not None:  # row vectors: v' = v Q^T, three at a time
+            vec = (vec.reshape(-1, 3, 3) @ turn[0].T).reshape(-1, 9)
+        return self.node_norms[l](torch.cat([vec, attrs], dim=-1))
 
     def _advance(
         self,
@@ -853,7 +895,7 @@ class Simulator(nn.Module):
                 out = v_rel.new_zeros((h.sizes[l], HEAD_OUTPUTS))
             else:
                 a_ext = f_lv[l] / ep.masses[l].clamp_min(1e-12)[:, None]
-                nodes = self._node_features(l, a_anchor, a_ext, v_rel, ep.attrs[l])
+                nodes = self._node_features(l, a_anchor, a_ext, v_rel, ep.attrs[l], ep.network_frame)
                 parent_lat = None
                 if l < L and cfg.gnn.top_down_latent:
                     parent_lat = latents[l + 1].index_select(0, h.parents[l])
@@ -871,6 +913,9 @@ class Simulator(nn.Module):
                 net_sq.append((delta * delta).sum(-1).mean())
             # translation: residual velocity and offset, bounded
             acc = dyn_cfg.accel_scale * delta[:, :3]
+            turn = ep.network_frame
+            if turn is not None:  # back to the world frame: a = Q^T a'
+                acc = acc @ turn[0]
             a_d = None
             if a_direct is not None:  # residual physics: own direct acceleration minus the anchor's
                 a_d = a_direct[l] if l == L else a_direct[l] - a_direct[l + 1].index_select(0, h.parents[l])
@@ -899,8 +944,20 @@ class Simulator(nn.Module):
             ls = s_max * torch.tanh(delta[:, 11:14] / s_max)
             ls = ls - ls.mean(dim=-1, keepdim=True)
             r_old = state.rot[l]
-            new_rot[l] = quat_normalize(quat_multiply(quat_multiply(U, quat_conjugate(V)), r_old))
-            F = (quat_to_rotmat(U) * ls.exp()[:, None, :]) @ (quat_to_rotmat(V).transpose(-1, -2) @ quat_to_rotmat(r_old))
+            if turn is None:
+                new_rot[l] = quat_normalize(quat_multiply(quat_multiply(U, quat_conjugate(V)), r_old))
+                F = (quat_to_rotmat(U) * ls.exp()[:, None, :]) @ (quat_to_rotmat(V).transpose(-1, -2) @ quat_to_rotmat(r_old))
+            else:  # the update D' = U' S V'^T back in the world frame, D = Q^T D' Q, written so that
+                # D' = I gives exactly I (the rest fixed point): I + Q^T (D' - I) Q; its rotation
+                # U' V'^T as a quaternion whose vector part is turned back
+                Qm = turn[0]
+                m = quat_multiply(U, quat_conjugate(V))
+                m = torch.cat([m[:, :1], m[:, 1:] @ Qm], dim=-1)
+                new_rot[l] = quat_normalize(quat_multiply(m, r_old))
+                eye = torch.eye(3, dtype=U.dtype, device=U.device)
+                D = (quat_to_rotmat(U) * ls.exp()[:, None, :]) @ quat_to_rotmat(V).transpose(-1, -2)
+                D = eye + Qm.T @ (D - eye) @ Qm
+                F = D @ quat_to_rotmat(r_old)
             new_def[l] = F if l == L else F @ new_def[l + 1].index_select(0, h.parents[l])
 
         nxt = SimState(

@@ -150,15 +150,25 @@ class Stage2Config:
 
 @dataclass
 class ScheduleConfig:
-    """Epochs of ``iters_per_epoch`` iterations (one episode rollout per iteration and rank)."""
+    """Epochs of ``iters_per_epoch`` iterations (one episode rollout per iteration and rank).
+
+    ``yaw_augment``: every training rollout runs the network in a frame turned about gravity by
+    an angle drawn uniformly from [-pi, pi) (:meth:`~soma_ros.core.simulator.Simulator.init_state`
+    ``network_yaw``). Table-top physics does not change under that turn; a network that reads
+    world-frame vectors otherwise learns, from a few episodes, responses tied to the directions
+    those episodes happened to have. The physical terms, validation, evaluation and the live node
+    are not turned."""
 
     iters_per_epoch: int = 100
     stage1: Stage1Config = field(default_factory=Stage1Config)
     stage2: Stage2Config = field(default_factory=Stage2Config)
+    yaw_augment: bool = False
 
     def validate(self, where: str = "schedule") -> None:
         if self.iters_per_epoch < 1:
             raise ConfigError(f"{where}.iters_per_epoch: must be >= 1, got {self.iters_per_epoch}")
+        if not isinstance(self.yaw_augment, bool):
+            raise ConfigError(f"{where}.yaw_augment: true or false, got {self.yaw_augment!r}")
         self.stage1.validate(f"{where}.stage1")
         self.stage2.validate(f"{where}.stage2")
         if self.stage1.epochs + self.stage2.epochs < 1:

@@ -180,7 +180,8 @@ class RolloutPlan:
     before the gripper comes within reach of the object: there the state is exactly the
     initial one -- the simulator's at-rest property -- so they carry no gradient);
     ``frames``: the frames stepped with gradients; ``supervised``: those of ``frames`` whose
-    rendered loss counts (None = all).
+    rendered loss counts (None = all). ``network_yaw`` (rad): the turn of the network's frame
+    about gravity for this rollout (``schedule.yaw_augment``; 0 = the world frame).
     """
 
     episode: str
@@ -188,6 +189,7 @@ class RolloutPlan:
     prefix: list[int]
     frames: list[int]
     supervised: Optional[list[int]] = None
+    network_yaw: float = 0.0
 
     @property
     def start(self) -> int:
@@ -610,12 +612,12 @@ class RolloutLoss(nn.Module):
         ctx = _scene_ctx(self.bundle, ep.dt * plan.stride, dev, dt_)
         if plan.prefix:
             with torch.no_grad():
-                state = sim.init_state(sp, ctx)
+                state = sim.init_state(sp, ctx, network_yaw=plan.network_yaw)
                 for t in plan.prefix:
                     state = sim.step(state, ep.action(t, dt_, dev))
             state = sim.refresh_reference(state.detach())
         else:
-            state = sim.init_state(sp, ctx)
+            state = sim.init_state(sp, ctx, network_yaw=plan.network_yaw)
         sums = {k: state.means.new_zeros(()) for k in LOSS_TERMS}
         net_sq = state.means.new_zeros(())  # the network's contribution, summed over every step with gradients
         sup = set(plan.loss_frames)
@@ -1189,6 +1191,8 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         ep = store.episode(name)
         init = store.initial_splats(name)
         plan = plan_rollout(info, name, ep.num_frames, rng, store.contact(name, reach), cfg.schedule.stage1.sim_step)
+        if cfg.schedule.yaw_augment:  # drawn after the plan: without it the plans are those of earlier runs
+            plan.network_yaw = float(rng.uniform(-math.pi, math.pi))
         for g in opt.param_groups:
             g["lr"] = lr_at(cfg, it, g["name"]) * guard.lr_scale
         lr = opt.param_groups[0]["lr"]  # the log's lr: the network's (the first group)

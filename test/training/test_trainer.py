@@ -355,6 +355,43 @@ def test_at_rest_prefix_carries_no_gradient(lift_dataset):
     assert rel < 1e-9, rel
 
 
+def test_a_turned_network_frame_reaches_the_rollout_and_leaves_the_priors_alone(lift_dataset):
+    """``schedule.yaw_augment``: the plan's ``network_yaw`` reaches the simulator. With a non-zero
+    network the loss changes with the turn; with the untrained (zero-output) network of ``tiny``
+    the rollout is the physical terms alone, which no turn changes."""
+    from soma_ros.core.robot import RobotModel
+    from soma_ros.core.simulator import Simulator
+    from soma_ros.data.dataset import load_dataset, prepare_episode
+    from soma_ros.scene.scene_setup import setup_scene
+    from soma_ros.training.config import ConfigError, load_train_config
+    from soma_ros.training.train import RolloutLoss, RolloutPlan, contact_frame, rest_reach
+
+    cfg = load_train_config("tiny", {"scene": {"num_splats": 300, "photometric_iters": 0},
+                                     "schedule": {"yaw_augment": True}})
+    with pytest.raises(ConfigError, match="yaw_augment"):
+        load_train_config("tiny", {"schedule": {"yaw_augment": "yes"}})
+    robot = RobotModel.from_config("panda")
+    ref = load_dataset(lift_dataset, "train")[0]
+    ep = prepare_episode(ref.bag, robot, cfg.data)
+    losses = {}
+    for scale in (0.0, 1.0):
+        mc = cfg.model_config()
+        mc.gnn.out_init_scale = scale
+        setup = setup_scene(ep, cfg.scene, "rope", "panda", 0.05, mc.hierarchy.thresholds)
+        torch.manual_seed(0)
+        sim = Simulator(mc)
+        sim.bind_hierarchy(setup.hierarchy)
+        c = contact_frame(ep, setup.bundle.splats, rest_reach(sim))
+        frames = list(range(c, c + 8))
+        loss_mod = RolloutLoss(sim, cfg, setup.bundle)
+        with torch.no_grad():
+            for yaw in (0.0, 1.3):
+                plan = RolloutPlan(ref.name, 1, list(range(1, c)), frames, frames[3::4], network_yaw=yaw)
+                losses[scale, yaw] = float(loss_mod(ep, setup.bundle.splats, plan)[0])
+    assert losses[0.0, 0.0] == losses[0.0, 1.3]
+    assert abs(losses[1.0, 0.0] - losses[1.0, 1.3]) > 1e-6 * losses[1.0, 0.0], losses
+
+
 def test_schedule_plans():
     import numpy as np
 
