@@ -59,11 +59,12 @@ __all__ = [
 class LossConfig:
     """L = mean over supervised frames and cameras of [lam * masked L2 + (1 - lam) * D-SSIM]
     on object pixels (robot-occluded pixels excluded) + ``momentum_weight`` * L_mom
-    + ``depth_weight`` * masked L1 depth (metres; 0 = the paper's image-only loss) on
-    ``depth_region``: "object" = measured object pixels only; "scored" = the evaluation's
-    rule (:func:`soma_ros.core.scoring.complete_depth_maps`): both maps completed with the
-    table-plane depth, scored on object pixels or where the prediction renders (alpha > 0.5),
-    robot pixels excluded -- so splats rendered where the camera sees the table cost too
+    + ``depth_weight`` * masked L1 depth (metres; 0 = the paper's image-only loss) on the
+    pixels ``depth_region`` names ("object" = measured object pixels only; "scored" = the
+    evaluation's rule, :func:`soma_ros.core.scoring.complete_depth_maps`, both maps completed
+    with the table-plane depth, scored on object pixels or where the prediction renders
+    (alpha > 0.5), robot pixels excluded -- so splats rendered where the camera sees the
+    table cost too)
     + ``points_weight`` * mean distance observed object point -> nearest splat (m)
     (see :func:`soma_ros.training.train.frame_terms`)
     + ``network_weight`` * the network's mean squared contribution over the rollout's steps
@@ -87,10 +88,10 @@ class LossConfig:
     camera_reduce: str = "camera"
     momentum_weight: float = 1.0
     depth_weight: float = 0.0
-    depth_region: str = "object"
+    depth_region: str = "object"  # the depth term's pixels: "object" or "scored" (above)
     points_weight: float = 0.0
     points_max: int = 1000
-    network_weight: float = 0.0
+    network_weight: float = 0.0  # weight of the pull towards the physical terms alone (above)
 
     def validate(self, where: str = "loss") -> None:
         if not 0.0 <= self.lam <= 1.0:
