@@ -118,8 +118,8 @@ F/m, relative velocity; the edge directions and relative velocities) are turned 
 acceleration output is turned back by Q^T and its deformation update D' = U' S V'^T by
 D = Q^T D' Q (computed as I + Q^T (D' - I) Q, so that no update stays exactly none). The
 physical terms, the bounds and the rest fixed point are untouched (the reference pass
-runs in the same frame). theta = 0
-(the default, and every rollout outside training) is the world frame, bit for bit.
+runs in the same frame). theta = 0 (the default, and every rollout outside training) is
+the world frame, bit for bit.
 
 Differentiable end to end (``rollout`` under autograd); graph indices are
 constants. Call ``init_state`` again after the parameters change (each
@@ -252,7 +252,7 @@ class Episode:
     ``residual_limit`` [N_l] (None at the root), ``reference`` [N_l, 14]
     network outputs at the initial state (None where no network runs),
     ``static_rest_vectors`` [E_l, 3] rest vectors of the static edges.
-    ``network_frame``: (Q [3, 3], q [4]) the turn the network sees the world in, or None.
+    ``network_frame``: Q [3, 3], the turn the network sees the world in, or None.
     Splat constants: ``rest_covs`` [N0, 3, 3], ``rest_quats`` [N0, 4].
     """
 
@@ -270,8 +270,8 @@ class Episode:
     #: constants an effect builds once per episode (``EffectContext.cache``; e.g. the physics
     #: prior's nodes and constraints), shared by every state of the rollout
     cache: dict = field(default_factory=dict)
-    #: the network's frame (see "Turned network frame"): (Q [3, 3], q [4] its quaternion), None = world
-    network_frame: Optional[tuple[torch.Tensor, torch.Tensor]] = None
+    #: the network's frame (see "Turned network frame"): Q [3, 3], None = the world frame
+    network_frame: Optional[torch.Tensor] = None
 
 
 @dataclass
@@ -407,9 +407,9 @@ def _gather_matvec(F: torch.Tensor, idx: torch.Tensor, v: torch.Tensor) -> torch
     return (F.index_select(0, idx) * v[:, None, :]).sum(-1)
 
 
-def network_turn(scene: SceneContext, yaw: float) -> Optional[tuple[torch.Tensor, torch.Tensor]]:
-    """(Q [3, 3], q [4]): the turn by ``yaw`` rad about the scene's up axis (against gravity; the
-    table normal when gravity is zero), as a matrix and a unit quaternion (w, x, y, z); None for 0."""
+def network_turn(scene: SceneContext, yaw: float) -> Optional[torch.Tensor]:
+    """Q [3, 3]: the turn by ``yaw`` rad about the scene's up axis (against gravity; the table
+    normal when gravity is zero); None for 0."""
     yaw = float(yaw)
     if not math.isfinite(yaw):
         raise ValueError(f"network_yaw must be finite, got {yaw}")
@@ -419,7 +419,7 @@ def network_turn(scene: SceneContext, yaw: float) -> Optional[tuple[torch.Tensor
     up = -g / g.norm() if float(g.norm()) > 1e-9 else scene.plane_normal
     half = 0.5 * yaw
     q = torch.cat([up.new_tensor([math.cos(half)]), math.sin(half) * up])
-    return quat_to_rotmat(q[None])[0], q
+    return quat_to_rotmat(q[None])[0]
 
 
 class Simulator(nn.Module):
@@ -798,7 +798,7 @@ class Simulator(nn.Module):
             feats.append(edge_features(x, vel, ep.rest[l], dyn, 1.0, vs))
         ef = torch.cat(feats, dim=0) if has_dyn else feats[0]
         if ep.network_frame is not None:  # the direction (0:3) and the relative velocity (4:7) turned
-            Qt = ep.network_frame[0].T
+            Qt = ep.network_frame.T
             ef = torch.cat([ef[:, 0:3] @ Qt, ef[:, 3:4], ef[:, 4:7] @ Qt, ef[:, 7:]], dim=-1)
         ef = self.edge_norms[l](ef)
         dense = self.graphs.dense[l]
@@ -827,7 +827,7 @@ class Simulator(nn.Module):
         d = self.config.dynamics
         vec = torch.cat([a_anchor / d.accel_scale, a_ext / d.accel_scale, v_rel / d.velocity_scale], dim=-1)
         if turn is not None:  # row vectors: v' = v Q^T, three at a time
-            vec = (vec.reshape(-1, 3, 3) @ turn[0].T).reshape(-1, 9)
+            vec = (vec.reshape(-1, 3, 3) @ turn.T).reshape(-1, 9)
         return self.node_norms[l](torch.cat([vec, attrs], dim=-1))
 
     def _advance(
@@ -915,7 +915,7 @@ class Simulator(nn.Module):
             acc = dyn_cfg.accel_scale * delta[:, :3]
             turn = ep.network_frame
             if turn is not None:  # back to the world frame: a = Q^T a'
-                acc = acc @ turn[0]
+                acc = acc @ turn
             a_d = None
             if a_direct is not None:  # residual physics: own direct acceleration minus the anchor's
                 a_d = a_direct[l] if l == L else a_direct[l] - a_direct[l + 1].index_select(0, h.parents[l])
@@ -950,13 +950,12 @@ class Simulator(nn.Module):
             else:  # the update D' = U' S V'^T back in the world frame, D = Q^T D' Q, written so that
                 # D' = I gives exactly I (the rest fixed point): I + Q^T (D' - I) Q; its rotation
                 # U' V'^T as a quaternion whose vector part is turned back
-                Qm = turn[0]
                 m = quat_multiply(U, quat_conjugate(V))
-                m = torch.cat([m[:, :1], m[:, 1:] @ Qm], dim=-1)
+                m = torch.cat([m[:, :1], m[:, 1:] @ turn], dim=-1)
                 new_rot[l] = quat_normalize(quat_multiply(m, r_old))
                 eye = torch.eye(3, dtype=U.dtype, device=U.device)
                 D = (quat_to_rotmat(U) * ls.exp()[:, None, :]) @ quat_to_rotmat(V).transpose(-1, -2)
-                D = eye + Qm.T @ (D - eye) @ Qm
+                D = eye + turn.T @ (D - eye) @ turn
                 F = D @ quat_to_rotmat(r_old)
             new_def[l] = F if l == L else F @ new_def[l + 1].index_select(0, h.parents[l])
 
