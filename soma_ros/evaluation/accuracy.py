@@ -26,7 +26,7 @@ model) and recomputes the evaluation; a dataset that does not match the preset
 is regenerated and the runs trained on it are deleted; ``--fresh`` starts over.
 
 Presets live in ``config/eval/<preset>.yaml`` (:class:`BenchConfig`): ``tiny``
-runs on a 2-core CPU (under an hour per object), ``paper`` is the paper's scale
+runs on a 2-core CPU (docs/evaluation.md gives the time per object), ``paper`` is the paper's scale
 for a GPU.
 """
 
