@@ -400,19 +400,38 @@ class LiveSimulator:
         vals = dict(zip(self.robot.joint_names, mid.tolist()))
         return np.array([vals.get(n, 0.0) for n in self.required_joints], dtype=np.float64)
 
-    def calibrate(self, steps: int = 12, renders: int = 3) -> StepTiming:
+    def calibrate(self, steps: int = 12, renders: int = 3, step_period_s: float = 0.0,
+                  render_period_s: float = 0.0) -> StepTiming:
         """The engine's own figures: median wall time of a step and of a render of all cameras,
         measured here with nothing else of the node running. The steps start from the initial
         scene with the robot at :meth:`neutral_joint_vec`; the running state, step count and
-        settling counters are restored afterwards (nothing is published)."""
+        settling counters are restored afterwards (nothing is published).
+
+        With ``step_period_s`` / ``render_period_s`` > 0 the steps / renders start on a grid of
+        that period, as the node's loops run them, instead of back to back. The cadence alone
+        changes the figure: a step that follows an idle gap costs more CPU than one that follows
+        another step, with nothing else running (measured in docs/benchmarks.md, "Live node"),
+        so the node compares its in-node times with the engine at its own rates."""
         if steps < 1 or renders < 1:
             raise ValueError(f"calibrate needs steps >= 1 and renders >= 1, got {steps}, {renders}")
+        if step_period_s < 0 or render_period_s < 0:
+            raise ValueError(f"calibrate needs periods >= 0, got {step_period_s}, {render_period_s}")
         with self._lock:
             saved = (self.state, self.steps, self.settles, self._quiet_steps)
         vec = self.neutral_joint_vec()
         step_ms, render_ms = [], []
+
+        def paced(period: float, n: int):
+            """Yield ``n`` times, each on a grid of ``period`` seconds (0: back to back)."""
+            start = time.monotonic()
+            for k in range(n):
+                wait = start + k * period - time.monotonic()
+                if period > 0 and wait > 0:
+                    time.sleep(wait)
+                yield k
+
         try:
-            for _ in range(steps + 1):  # the first one warms up
+            for _ in paced(step_period_s, steps + 1):  # the first one warms up
                 try:
                     _, ms = self.step(vec)
                 except (SimulationDiverged, FloatingPointError):
@@ -421,7 +440,7 @@ class LiveSimulator:
                     _, ms = self.step(None)
                 step_ms.append(ms)
             state, template, _ = self.snapshot()
-            for _ in range(renders + 1):
+            for _ in paced(render_period_s, renders + 1):
                 t0 = time.perf_counter()
                 self.render(state, template, vec)
                 render_ms.append((time.perf_counter() - t0) * 1e3)

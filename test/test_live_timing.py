@@ -38,6 +38,37 @@ def test_calibrate_measures_alone_and_leaves_the_running_state(live):
         live.calibrate(steps=0)
 
 
+def test_calibrate_paces_steps_and_renders_at_the_given_periods(live):
+    """With periods, calibration runs its steps and renders on the node's grid (one warm-up call
+    each, then the measured ones), not back to back, and restores the running state."""
+    import time
+
+    live.reset(live.bundle.splats)
+    before = live.snapshot()[0].means.clone()
+    t0 = time.monotonic()
+    t = live.calibrate(steps=3, renders=2, step_period_s=0.08, render_period_s=0.06)
+    took = time.monotonic() - t0
+    assert took >= 3 * 0.08 + 2 * 0.06  # 4 steps 0.08 s apart, 3 renders 0.06 s apart
+    assert t.step_ms > 0 and t.render_ms > 0
+    assert torch.equal(live.snapshot()[0].means, before)
+    with pytest.raises(ValueError, match="periods >= 0"):
+        live.calibrate(step_period_s=-1.0)
+
+
+def test_bench_engine_uses_the_node_settings(untrained_run):
+    """The bench's engine section builds the engine as the node does (its parameter file's
+    settling and passive-object defaults, with --param overrides)."""
+    from benchmarks.bench_live import node_engine_kwargs
+
+    k = node_engine_kwargs()
+    assert k["settle_s"] > 0 and k["passive_friction"] >= 0
+    off = node_engine_kwargs(["settle_time_s:=0.0", "passive_friction:=-1.0"])
+    assert off["settle_s"] == 0.0 and off["passive_friction"] == -1.0
+    a = load_live(str(untrained_run[0]), str(untrained_run[1]), **k)
+    b = load_live(str(untrained_run[0]), str(untrained_run[1]), **off)
+    assert a.settle_steps > 0 and b.settle_steps == 0
+
+
 def test_bench_adds_fixed_cameras_looking_at_the_object(untrained_run, tmp_path):
     from benchmarks.bench_live import with_cameras
     from soma_ros.core.scene_bundle import SceneBundle

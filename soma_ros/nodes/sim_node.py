@@ -265,8 +265,11 @@ class SomaSimNode(Node):
             f"{', '.join(c.name for c in self.live.cameras)}, joints {', '.join(self.live.required_joints)}")
         self.get_logger().info(f"passive-object rule: {self.live.sim.config.dynamics.passive_rule_text()}")
         self.get_logger().info(f"reset reads scene files only inside: {', '.join(map(str, self.scene_policy.dirs))}")
-        # the engine's own step and render times, reported in /soma/status beside the in-node ones
-        self.engine = self.live.calibrate()
+        # the engine's own step and render times at the node's rates (periods capped at 0.1 s, so
+        # that start-up stays short at low rates), reported in /soma/status beside the in-node ones
+        self.engine = self.live.calibrate(
+            step_period_s=min(0.1, 1.0 / self.rate_hz),
+            render_period_s=min(0.1, 1.0 / self.render_rate_hz) if self.render_rate_hz > 0 else 0.0)
         self.get_logger().info(
             f"engine alone: step {self.engine.step_ms:.1f} ms, render {self.engine.render_ms:.1f} ms "
             f"({len(self.live.cameras)} camera(s) {self.live.cameras[0].width}x{self.live.cameras[0].height}"
