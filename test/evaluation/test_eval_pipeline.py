@@ -119,7 +119,11 @@ def test_bench_never_selects_on_the_test_split():
     from soma_ros.evaluation.accuracy import _check_no_test_selection, load_bench_config
     from soma_ros.core.config import ConfigError
 
-    for preset in ("tiny", "paper", "tiny_mlp"):
+    from soma_ros.paths import config_dir
+
+    presets = sorted(p.stem for p in (config_dir() / "eval").glob("*.yaml"))
+    assert {"tiny", "tiny10", "paper", "tiny_mlp"} <= set(presets)
+    for preset in presets:
         b = load_bench_config(preset)
         for v in ("full", "state_only", "img_only", "no_mrt"):
             c = variant_train_config(b, "rope", v)
