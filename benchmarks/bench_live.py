@@ -774,14 +774,13 @@ def node_engine_kwargs(params: Sequence[str] = ()) -> dict:
 
     from soma_ros.paths import config_dir
 
+    from soma_ros.live import live_kwargs
+
     values = yaml.safe_load((config_dir() / "nodes" / "sim_node.yaml").read_text())["/**"]["ros__parameters"]
     for q in params:
         name, _, value = q.partition(":=")
         values[name] = yaml.safe_load(value)
-    return {"render_scale": float(values["render_scale"]), "max_travel_m": float(values["max_object_travel_m"]),
-            "settle_s": float(values["settle_time_s"]), "settle_speed": float(values["settle_speed_mps"]),
-            "passive_friction": float(values["passive_friction"]),
-            "passive_exempt_grasped": bool(values["passive_exempt_grasped"])}
+    return live_kwargs(values)
 
 
 def bench_engine(live, hover, sweep, say, steps: int = 90, renders: int = 10, clouds: int = 10,
@@ -793,6 +792,7 @@ def bench_engine(live, hover, sweep, say, steps: int = 90, renders: int = 10, cl
     and one every ``1/rate_hz`` seconds as the node runs them (median wall and thread CPU time
     of the step): the idle gap between two steps alone makes a step dearer."""
     from soma_ros.core.cloud_layout import splats_to_records
+    from soma_ros.live import paced
 
     def cpu_per(fn, n):
         fn(0)
@@ -804,13 +804,10 @@ def bench_engine(live, hover, sweep, say, steps: int = 90, renders: int = 10, cl
     live.reset(live.bundle.splats)
     step_cpu, step_wall = cpu_per(lambda i: live.step(sweep[i % len(sweep)]), steps)
     paced_wall, paced_cpu = [], []
-    t_next = time.monotonic()
-    for i in range(steps):
+    for i in paced(1.0 / rate_hz, steps):
         _, ms = live.step(sweep[i % len(sweep)])
         paced_wall.append(ms)
         paced_cpu.append(live.last_step_cpu_ms)
-        t_next += 1.0 / rate_hz
-        time.sleep(max(0.0, t_next - time.monotonic()))
     st, tpl, _ = live.snapshot()
     render_cpu, render_wall = cpu_per(lambda i: live.render(st, tpl, hover), renders)
     cloud_cpu, cloud_wall = cpu_per(lambda i: splats_to_records(live.current_splats()), clouds)

@@ -421,15 +421,6 @@ class LiveSimulator:
         vec = self.neutral_joint_vec()
         step_ms, render_ms = [], []
 
-        def paced(period: float, n: int):
-            """Yield ``n`` times, each on a grid of ``period`` seconds (0: back to back)."""
-            start = time.monotonic()
-            for k in range(n):
-                wait = start + k * period - time.monotonic()
-                if period > 0 and wait > 0:
-                    time.sleep(wait)
-                yield k
-
         try:
             for _ in paced(step_period_s, steps + 1):  # the first one warms up
                 try:
@@ -486,6 +477,35 @@ class LiveSimulator:
     def current_splats(self) -> Splats:
         state, template, _ = self.snapshot()
         return state.to_splats(template)
+
+
+def paced(period_s: float, n: int):
+    """Yield 0 .. n-1, yield ``k`` no earlier than ``k * period_s`` seconds after the first
+    (a grid, so a slow iteration does not shift the later ones; 0: back to back). The live
+    engine's calibration and the live benchmark time steps at the node's rate with it."""
+    start = time.monotonic()
+    for k in range(n):
+        wait = start + k * period_s - time.monotonic()
+        if period_s > 0 and wait > 0:
+            time.sleep(wait)
+        yield k
+
+
+#: ``soma_sim_node`` parameter -> :func:`load_live` keyword, for the engine settings a node
+#: parameter sets (names as in ``config/nodes/sim_node.yaml``).
+LIVE_PARAMETERS = {"render_scale": "render_scale", "max_object_travel_m": "max_travel_m",
+                   "settle_time_s": "settle_s", "settle_speed_mps": "settle_speed",
+                   "passive_friction": "passive_friction", "passive_exempt_grasped": "passive_exempt_grasped"}
+
+
+def live_kwargs(params: Mapping[str, object]) -> dict:
+    """:func:`load_live` keywords from node parameter values: every name of
+    :data:`LIVE_PARAMETERS` is required, other names are ignored."""
+    missing = sorted(set(LIVE_PARAMETERS) - set(params))
+    if missing:
+        raise KeyError(f"node parameters missing for the live engine: {', '.join(missing)}")
+    return {kw: (bool(params[name]) if kw == "passive_exempt_grasped" else float(params[name]))
+            for name, kw in LIVE_PARAMETERS.items()}
 
 
 def load_live(checkpoint: str, scene: str, camera_names: Optional[Sequence[str]] = None,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from soma_ros.live import LiveSimulator, load_live
+from soma_ros.live import LIVE_PARAMETERS, LiveSimulator, live_kwargs, load_live, paced
 
 
 @pytest.fixture(scope="module")
@@ -53,6 +53,36 @@ def test_calibrate_paces_steps_and_renders_at_the_given_periods(live):
     assert torch.equal(live.snapshot()[0].means, before)
     with pytest.raises(ValueError, match="periods >= 0"):
         live.calibrate(step_period_s=-1.0)
+
+
+def test_paced_yields_on_a_grid_that_a_slow_iteration_does_not_shift():
+    import time
+
+    t0 = time.monotonic()
+    starts = []
+    for k in paced(0.1, 4):
+        starts.append(time.monotonic() - t0)
+        if k == 1:
+            time.sleep(0.14)  # one slow iteration: the next starts at once, the last on the grid
+    assert [k for k in paced(0.0, 3)] == [0, 1, 2]
+    assert starts[1] >= 0.1 and starts[2] >= 0.24 and starts[3] >= 0.3
+    assert starts[3] - starts[2] < 0.09  # back on the grid (0.06 s later), not a full period after
+
+
+def test_live_kwargs_maps_every_node_parameter_and_names_missing_ones():
+    """The node and the bench build the engine from the same parameter -> keyword table."""
+    import inspect
+
+    import yaml
+
+    from soma_ros.paths import config_dir
+
+    values = yaml.safe_load((config_dir() / "nodes" / "sim_node.yaml").read_text())["/**"]["ros__parameters"]
+    k = live_kwargs(values)
+    assert set(k) == set(LIVE_PARAMETERS.values()) <= set(inspect.signature(load_live).parameters)
+    assert isinstance(k["passive_exempt_grasped"], bool) and isinstance(k["settle_s"], float)
+    with pytest.raises(KeyError, match="settle_time_s"):
+        live_kwargs({n: v for n, v in values.items() if n != "settle_time_s"})
 
 
 def test_bench_engine_uses_the_node_settings(untrained_run):

@@ -239,13 +239,11 @@ class SomaSimNode(Node):
         if not ckpt or not scene:
             raise ValueError("parameters 'checkpoint' and 'scene' are required "
                              "(soma_sim_node --ros-args -p checkpoint:=RUN/checkpoint.pt -p scene:=RUN/scene)")
-        from ..live import JointStateFilter, joint_limits, load_live
+        from ..live import LIVE_PARAMETERS, JointStateFilter, joint_limits, live_kwargs, load_live
 
         cams = [c for c in gp("cameras") if c]
-        self.live = load_live(ckpt, scene, camera_names=cams or None, render_scale=self.render_scale, device=gp("device"),
-                              max_travel_m=self.max_travel, settle_s=self.settle_time, settle_speed=self.settle_speed,
-                              passive_friction=self.passive_friction,
-                              passive_exempt_grasped=bool(gp("passive_exempt_grasped")))
+        self.live = load_live(ckpt, scene, camera_names=cams or None, device=gp("device"),
+                              **live_kwargs({n: gp(n) for n in LIVE_PARAMETERS}))
         if gp("robot_config"):
             from ..core.robot import RobotModel
 
