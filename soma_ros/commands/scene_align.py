@@ -27,6 +27,9 @@ def register(s: argparse._SubParsersAction) -> None:
     a.add_argument("--photometric-iters", type=int, default=None, help="iterations of the photometric refinement "
                                                                        "(default 150; 0 = geometry only)")
     a.add_argument("--trim", type=float, default=None, help="ICP inlier distance in metres (default 0.01)")
+    a.add_argument("--holdout-view", type=int, default=None,
+                   help="with --capture: fit the photometric stage to the other views and score this one held out")
+    a.add_argument("--seed", type=int, default=None, help="seed of the photometric stage's view order (default 0)")
     a.add_argument("--dt", type=float, default=1 / 30, help="with --capture: frame interval stored in the bundle (s)")
     a.add_argument("--quiet", action="store_true", help="no progress bar")
     a.set_defaults(func=run_align)
@@ -41,13 +44,18 @@ def run_align(args: argparse.Namespace) -> int:
         cfg.photometric_iters = int(args.photometric_iters)
     if args.trim is not None:
         cfg.trim_distance = float(args.trim)
+    if args.seed is not None:
+        cfg.seed = int(args.seed)
     cfg.validate()
     if not Path(args.file).is_file():
         raise FileNotFoundError(f"scan file not found: {args.file}")
     if args.capture:
         report = align_to_capture(Path(args.file), Path(args.capture), Path(args.out), cfg, object_name=args.object,
-                                  robot=args.robot, dt=args.dt, progress=not args.quiet)
+                                  robot=args.robot, dt=args.dt, progress=not args.quiet,
+                                  holdout_view=args.holdout_view)
     else:
+        if args.holdout_view is not None:
+            raise ValueError("scene align: --holdout-view applies to --capture only")
         report = align_to_bag(Path(args.file), Path(args.bag), Path(args.out), cfg, object_name=args.object,
                               robot=args.robot, config=_train_config(args.config), progress=not args.quiet)
     print(json.dumps(report, indent=2))

@@ -19,25 +19,30 @@ def save_rgb(path: Path, rgb01: np.ndarray) -> None:
     cv2.imwrite(str(path), (np.clip(rgb01, 0, 1) * 255).round().astype(np.uint8)[..., ::-1])
 
 
-def render_views(splats: Splats, views) -> torch.Tensor:
-    """[V, H, W, 3] renders of ``splats`` in every view (view-dependent colour when it has SH bands)."""
+def render_views(splats: Splats, views, with_alpha: bool = False):
+    """[V, H, W, 3] renders of ``splats`` in every view (view-dependent colour when it has SH
+    bands); with ``with_alpha`` also their [V, H, W] accumulated opacity."""
     from soma_ros.core.render import render
 
-    out = []
+    out, alpha = [], []
     with torch.no_grad():
         cov = splats.covariances()
         for v in range(views.num_views):
             cam = views.cameras.select([v])
             col = splats.colors_seen_from(cam.centers().to(splats.means.dtype))
-            out.append(render(splats.means, cov, col, splats.opacities, cam).rgb[0])
-    return torch.stack(out)
+            r = render(splats.means, cov, col, splats.opacities, cam)
+            out.append(r.rgb[0])
+            alpha.append(r.alpha[0].reshape(r.rgb.shape[1:3]))
+    return (torch.stack(out), torch.stack(alpha)) if with_alpha else torch.stack(out)
 
 
 def view_metrics(renders: torch.Tensor, views, names: Optional[Sequence[str]] = None, roles: Optional[dict] = None,
-                 with_lpips: bool = True) -> list[dict]:
+                 with_lpips: bool = True, alphas: Optional[torch.Tensor] = None) -> list[dict]:
     """Per view: masked PSNR (object pixels), SSIM averaged over the object pixels, and the
     evaluation protocol's full-image PSNR / SSIM / LPIPS of (render, measured x mask), see
-    :func:`soma_ros.core.metrics.image_metrics`."""
+    :func:`soma_ros.core.metrics.image_metrics`. With ``alphas`` ([V, H, W]) also
+    ``alpha_iou``: the rendered silhouette (alpha > 0.5) against the mask, intersection over
+    union, which shows whether the splats sit where the view sees the object."""
     from soma_ros.core.metrics import image_metrics, ssim
 
     rows = []
@@ -52,6 +57,10 @@ def view_metrics(renders: torch.Tensor, views, names: Optional[Sequence[str]] = 
         if roles is not None:
             r["role"] = roles.get(v, "")
         r["object_pixels"] = int(om.sum())
+        if alphas is not None:
+            sil = alphas[v] > 0.5
+            union = int((sil | m).sum())
+            r["alpha_iou"] = float((sil & m).sum()) / union if union else 1.0
         rows.append(r)
     return rows
 

@@ -63,8 +63,8 @@ def reconstruct_capture(folder: Path, out: Path, holdout: Optional[int] = None, 
     order = train_idx + ([holdout] if holdout is not None else [])
     ov = views.select(order)
     roles = {k: ("held-out" if i == holdout else "train") for k, i in enumerate(order)}
-    ren = render_views(fitted, ov)
-    rows = view_metrics(ren, ov, names=[f"view_{i}" for i in order], roles=roles)
+    ren, alpha = render_views(fitted, ov, with_alpha=True)
+    rows = view_metrics(ren, ov, names=[f"view_{i}" for i in order], roles=roles, alphas=alpha)
     ren0 = render_views(init, ov)
     for r, r0 in zip(rows, view_metrics(ren0, ov, with_lpips=False)):
         r["psnr_masked_init"] = r0["psnr_masked"]

@@ -51,8 +51,8 @@ class AlignConfig:
     trim_distance: float = 0.01
     max_points: int = 20000
     photometric_iters: int = 150
-    lr_rotation: float = 2e-3
-    lr_translation: float = 1e-3
+    lr_rotation: float = 5e-3  # rad per Adam step, decayed 10x over the refinement
+    lr_translation: float = 3e-3  # m per Adam step, decayed likewise
     lr_scale: float = 2e-3
     lr_colour: float = 1e-2
     alpha_weight: float = 0.1
@@ -366,8 +366,8 @@ def _write_bundle(out, splats: Splats, object_name: str, robot: str, views, dt: 
 def _report_views(out, splats: Splats, views, before: Optional[Splats], with_lpips: bool = True) -> list[dict]:
     from soma_ros.scene.recon_report import contact_sheet, render_views, view_metrics
 
-    ren = render_views(splats, views)
-    rows = view_metrics(ren, views, with_lpips=with_lpips)
+    ren, alpha = render_views(splats, views, with_alpha=True)
+    rows = view_metrics(ren, views, with_lpips=with_lpips, alphas=alpha)
     if before is not None:
         ren0 = render_views(before, views)
         for r, r0 in zip(rows, view_metrics(ren0, views, with_lpips=False)):
@@ -377,9 +377,15 @@ def _report_views(out, splats: Splats, views, before: Optional[Splats], with_lpi
 
 
 def align_to_capture(file, capture, out, cfg: Optional[AlignConfig] = None, object_name: str = "rope",
-                     robot: str = "panda", dt: float = 1 / 30, progress: bool = True) -> dict:
+                     robot: str = "panda", dt: float = 1 / 30, progress: bool = True,
+                     holdout_view: Optional[int] = None) -> dict:
     """`soma scene align --capture`: align the scan to the capture, write the scene bundle into OUT
-    (splats.ply, scene.json, hierarchy.pt) plus align.json and align_compare.png."""
+    (splats.ply, scene.json, hierarchy.pt) plus align.json and align_compare.png.
+
+    ``holdout_view``: the photometric stage fits the other views only, and the report scores that
+    view as held out (``role``, ``psnr_holdout``), as ``soma reconstruct --holdout-view`` does.
+    The geometric stage still registers to the capture's point cloud (``pcd.ply``), which a
+    capture fuses from its cameras; no pixel of the held-out view is fitted."""
     import json
     import time
     from pathlib import Path
@@ -393,23 +399,32 @@ def align_to_capture(file, capture, out, cfg: Optional[AlignConfig] = None, obje
     out.mkdir(parents=True, exist_ok=True)
     cfg = (cfg or AlignConfig()).validate()
     views = read_capture(capture)
+    if holdout_view is not None and not 0 <= holdout_view < views.num_views:
+        raise ValueError(f"scene align: --holdout-view {holdout_view} is not a view of {capture} "
+                         f"(0..{views.num_views - 1})")
+    fit_idx = [i for i in range(views.num_views) if i != holdout_view]
     scan = load_splats(file)
     scan.validate()
     target, source = capture_target_points(views)
     geo = align_scan(scan, target, cfg)
     res = geo
     if cfg.photometric_iters > 0:
-        moved, corr, pinfo = photometric_refine(geo.splats, views, cfg, progress)
+        moved, corr, pinfo = photometric_refine(geo.splats, views.select(fit_idx), cfg, progress)
+        pinfo["views"] = fit_idx
         res = AlignResult(corr @ geo.sim3, moved, {**geo.info, "photometric": pinfo,
                                                    "residual": residual_mm(moved, target, cfg.trim_distance)})
     _write_bundle(out, res.splats, object_name, robot, views, dt,
                   {"source_scan": str(file), "source_capture": str(capture), "scan_to_sim": res.sim3.to_dict()})
     rows = _report_views(out, res.splats, views, geo.splats if res is not geo else None)
+    for i, r in enumerate(rows):
+        r["role"] = "holdout" if i == holdout_view else "fit"
     report = {"scan": str(file), "capture": str(capture), "out": str(out), "splats": len(res.splats),
               "target": source, "target_points": int(len(target)), "sim3": res.sim3.to_dict(),
               "scale": res.sim3.s, "residual": res.info["residual"], "residual_geometric": geo.info["residual"],
               "photometric": res.info.get("photometric"), "views": rows,
               "min_psnr_masked": min(r["psnr_masked"] for r in rows), "seconds": round(time.time() - t0, 1)}
+    if holdout_view is not None:
+        report.update({"holdout_view": holdout_view, "psnr_holdout": rows[holdout_view]["psnr_masked"]})
     (out / "align.json").write_text(json.dumps(report, indent=2))
     return report
 

@@ -129,3 +129,33 @@ def test_scene_align_from_a_bag_writes_a_bundle_the_node_runs(rope_bag, referenc
         probe.close()
         rc = node.stop()
     assert rc in (0, -2), node.output()[-4000:]
+
+
+def test_a_held_out_view_is_never_fitted_and_scores_the_registration(shared_dir, tmp_path):
+    """`soma scene align --capture --holdout-view 3`: the photometric stage fits views 0-2 only (the
+    held-out image's pixels cannot move the result), and the shipped scan registered from three
+    views scores the fourth as a registration from all four does (docs/reconstruction.md)."""
+    import shutil
+
+    import cv2
+
+    from soma_ros.scene.scene_align import align_to_capture
+
+    REAL = shared_dir / "data" / "real_rope_4view"
+    if not REAL.is_dir():
+        pytest.skip(f"{REAL} not found")
+    blind = tmp_path / "capture"
+    shutil.copytree(REAL, blind)
+    cv2.imwrite(str(blind / "img_3.png"), np.zeros_like(cv2.imread(str(blind / "img_3.png"))))
+    scan = REAL / "gs_orig.splat"
+    a = align_to_capture(scan, REAL, tmp_path / "a", progress=False, holdout_view=3)
+    b = align_to_capture(scan, blind, tmp_path / "b", progress=False, holdout_view=3)
+    assert a["photometric"]["kept"] and a["photometric"]["views"] == [0, 1, 2]
+    assert np.allclose(a["sim3"]["rotation"], b["sim3"]["rotation"], atol=1e-9)
+    assert np.allclose(a["sim3"]["translation"], b["sim3"]["translation"], atol=1e-9)
+    assert [r["role"] for r in a["views"]] == ["fit", "fit", "fit", "holdout"]
+    assert a["psnr_holdout"] == a["views"][3]["psnr_masked"] >= 24.0, a["views"]
+    assert a["views"][3]["alpha_iou"] > 0.95  # the registered scan's silhouette is the held-out mask
+    assert b["psnr_holdout"] < 10.0  # scored against the black image it was not fitted to
+    with pytest.raises(ValueError, match="holdout-view 4"):
+        align_to_capture(scan, REAL, tmp_path / "c", progress=False, holdout_view=4)
