@@ -137,11 +137,13 @@ def scan_bag(bag: Path, joint_states: str, camera_info_topics: dict[str, str]) -
                     break
     finally:
         reader.close()
+    from soma_ros.core.cameras import k_from_camera_info
+
     infos = {}
     for cam, t in camera_info_topics.items():
         m = first.get(t)
         if m is not None:
-            infos[cam] = (np.asarray(m.k, dtype=np.float64).reshape(3, 3), int(m.width), int(m.height))
+            infos[cam] = (k_from_camera_info(m.k), int(m.width), int(m.height))  # the renderer's pixel centres
     return BagScan(bag, topics, counts, [str(n) for n in first[joint_states].name], infos)
 
 

@@ -16,7 +16,9 @@ Camera frame convention (OpenCV optical frame, also used by gsplat and by
 RealSense ``*_optical_frame``): x right, y down, z forward. A camera-frame
 point (x, y, z) with z > 0 projects to the pixel ``(fx x / z + cx,
 fy y / z + cy)``, where pixel (col, row) has its centre at (col + 0.5,
-row + 0.5) -- the gsplat / 3DGS convention.
+row + 0.5) -- the gsplat / 3DGS convention. ``sensor_msgs/CameraInfo`` (and OpenCV,
+RealSense) put that centre at (col, row), so its ``cx, cy`` are half a pixel smaller:
+:func:`k_from_camera_info` and :func:`k_to_camera_info` convert at the ROS boundary.
 
 Pure torch; no ROS imports.
 """
@@ -30,9 +32,30 @@ from typing import Optional, Sequence, Union
 import numpy as np
 import torch
 
-__all__ = ["Cameras", "look_at", "frame_points"]
+__all__ = ["Cameras", "look_at", "frame_points", "k_from_camera_info", "k_to_camera_info"]
 
 _ArrayLike = Union[torch.Tensor, np.ndarray, Sequence]
+
+
+def k_from_camera_info(k: _ArrayLike, scale_x: float = 1.0, scale_y: float = 1.0) -> np.ndarray:
+    """``sensor_msgs/CameraInfo.k`` (9 values or [3, 3]; pixel (col, row) centred at (col, row))
+    -> the [3, 3] K of this module (centred at (col + 0.5, row + 0.5)), for the image resized by
+    ``scale_x`` / ``scale_y`` (exact in this convention: every entry of a row scales)."""
+    K = np.array(k, dtype=np.float64).reshape(3, 3)
+    K[0, 2] += 0.5
+    K[1, 2] += 0.5
+    K[0, :] *= scale_x
+    K[1, :] *= scale_y
+    return K
+
+
+def k_to_camera_info(K: _ArrayLike) -> np.ndarray:
+    """The [3, 3] K of this module -> the K of ``sensor_msgs/CameraInfo`` (inverse of
+    :func:`k_from_camera_info` at scale 1)."""
+    K = np.array(K.detach().cpu() if isinstance(K, torch.Tensor) else K, dtype=np.float64).reshape(3, 3)
+    K[0, 2] -= 0.5
+    K[1, 2] -= 0.5
+    return K
 
 
 def _as_tensor(x: _ArrayLike, dtype=None, device=None) -> torch.Tensor:

@@ -66,7 +66,7 @@ import numpy as np
 import torch
 
 from soma_ros.core.calibration import Sim3, sim3_from_camera_poses
-from soma_ros.core.cameras import Cameras
+from soma_ros.core.cameras import Cameras, k_from_camera_info
 from soma_ros.core.robot import RobotModel
 from soma_ros.core.simulator import RobotAction
 
@@ -393,10 +393,7 @@ def prepare_episode(
     Ks = []
     rgb, depth, om, rm = [], [], [], []
     for s in streams:
-        K = s.K.copy()
-        K[0, :] *= W / W0
-        K[1, :] *= H / H0
-        Ks.append(K)
+        Ks.append(k_from_camera_info(s.K, W / W0, H / H0))  # CameraInfo -> the renderer's pixel centres
         rgb.append(_resize_stack(s.rgb, W, H, "area"))
         depth.append(_resize_stack(s.depth, W, H, "nearest"))
         o = s.object_mask if s.object_mask is not None else np.zeros((T, H0, W0), bool)

@@ -13,6 +13,7 @@ from builtin_interfaces.msg import Time
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
+from ..core.cameras import k_to_camera_info
 from ..core.cloud_layout import POINT_STEP, cloud_to_splats, splat_field_specs, splats_to_records
 from ..core.splats import Splats
 
@@ -100,8 +101,10 @@ def image_depth32(depth_m: np.ndarray, frame_id: str, stamp: Time) -> Image:
 
 
 def camera_info(K: np.ndarray, width: int, height: int, frame_id: str, stamp: Time) -> CameraInfo:
-    """Pinhole intrinsics [3, 3] -> sensor_msgs/CameraInfo (plumb_bob, no distortion)."""
-    K = np.asarray(K, dtype=np.float64).reshape(3, 3)
+    """Pinhole intrinsics [3, 3] of :mod:`soma_ros.core.cameras` (pixel centres at +0.5) ->
+    sensor_msgs/CameraInfo (pixel centres at integers: cx, cy half a pixel smaller; plumb_bob,
+    no distortion)."""
+    K = k_to_camera_info(K)
     P = np.zeros((3, 4))
     P[:, :3] = K
     return CameraInfo(header=Header(frame_id=frame_id, stamp=stamp), width=int(width), height=int(height),

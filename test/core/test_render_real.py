@@ -108,9 +108,23 @@ def test_cameras_helpers():
     assert cams.to(dtype=torch.float64).K.dtype == torch.float64
     with pytest.raises(ValueError, match="names"):
         Cameras(K=K[None], world_to_cam=torch.eye(4)[None], width=4, height=4, names=["a", "b"])
+
     with pytest.raises(ValueError, match="K must be"):
         Cameras(K=torch.eye(4)[None], world_to_cam=torch.eye(4)[None], width=4, height=4)
     with pytest.raises(IndexError):
         cams.select([5])
     with pytest.raises(ValueError, match="parallel"):
         look_at([0, 0, 1.0], [0, 0, 0.0], up=[0, 0, 1.0])
+
+
+def test_camera_info_k_converts_pixel_centres_and_scales_exactly():
+    """CameraInfo centres pixel (col, row) at (col, row), the renderer at (col + 0.5, row + 0.5):
+    the image centre of a 64x48 camera is (31.5, 23.5) in CameraInfo and (32, 24) here, and a
+    resize scales the converted K exactly (cx of the 32x24 image: 16, not 15.75)."""
+    from soma_ros.core.cameras import k_from_camera_info, k_to_camera_info
+
+    ros = [100.0, 0, 31.5, 0, 110.0, 23.5, 0, 0, 1]
+    K = k_from_camera_info(ros)
+    np.testing.assert_allclose(K, [[100.0, 0, 32], [0, 110.0, 24], [0, 0, 1]])
+    np.testing.assert_allclose(k_to_camera_info(torch.from_numpy(K)).ravel(), ros)
+    np.testing.assert_allclose(k_from_camera_info(ros, 0.5, 0.5), [[50.0, 0, 16], [0, 55.0, 12], [0, 0, 1]])

@@ -109,6 +109,16 @@ def test_prepare_episode_shapes_frames_and_actions(good_dataset, robot):
     pts, cols = ep.object_points([0])
     assert len(pts) > 100 and cols.shape == pts.shape
     assert 0.745 < float(pts[:, 2].min()) and float(pts[:, 2].max()) < 0.78
+    # CameraInfo's pixel centres (integers) are converted to the renderer's (+0.5): every
+    # camera's table pixels back-project onto the table top (z = 0.75); read as-is they land
+    # 2.8-2.9 mm below it from the fixed cameras
+    from soma_ros.data.dataset import backproject
+
+    for c, name in enumerate(ep.camera_names):
+        table = ~ep.object_mask[0, c] & ~ep.robot_mask[0, c] & (ep.depth[0, c] > 0)
+        p, _ = backproject(ep.depth[0, c], ep.K[c].double(), ep.cam_to_world[0, c].double(), table)
+        z = p[:, 2][(p[:, 2] - 0.75).abs() < 0.05]
+        assert len(z) > 1000 and abs(float(z.median()) - 0.75) < 5e-4, (name, float(z.median()))
     cams = ep.cameras(0)
     assert len(cams) == 3 and (cams.width, cams.height) == (160, 120)
     uv, z = cams.select([fixed]).project(pts)

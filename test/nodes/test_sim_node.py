@@ -141,10 +141,11 @@ def test_images_splats_camera_info_status_and_tf(ros_env, untrained_run, probe, 
         assert 0.4 < float(np.median(d[hit])) < 1.5  # cam_front is ~0.8 m from the rope
         assert np.allclose(np.nan_to_num(d), ref.depth[0].numpy(), atol=1e-4)
 
-        # ---- camera_info: the bundle's intrinsics
+        # ---- camera_info: the bundle's intrinsics, pixel centres at integers (the bundle's
+        # principal point W/2, H/2 from the image edge is (W-1)/2, (H-1)/2 in CameraInfo)
         K = np.array(info.k).reshape(3, 3)
         assert (info.width, info.height, info.distortion_model) == (W, H, "plumb_bob")
-        assert np.allclose(K, [[0.9 * W, 0, W / 2], [0, 0.9 * W, H / 2], [0, 0, 1]])
+        assert np.allclose(K, [[0.9 * W, 0, (W - 1) / 2], [0, 0.9 * W, (H - 1) / 2], [0, 0, 1]])
         assert info.header.frame_id == "soma_sim/cam_front_optical"
 
         # ---- splats: count, layout, positions, packed rgb
