@@ -384,8 +384,10 @@ def align_to_capture(file, capture, out, cfg: Optional[AlignConfig] = None, obje
 
     ``holdout_view``: the photometric stage fits the other views only, and the report scores that
     view as held out (``role``, ``psnr_holdout``), as ``soma reconstruct --holdout-view`` does.
-    The geometric stage still registers to the capture's point cloud (``pcd.ply``), which a
-    capture fuses from its cameras; no pixel of the held-out view is fitted."""
+    The geometric stage registers to the capture's point cloud (``pcd.ply``, which a capture
+    fuses from its cameras) when there is one, else to the other views' masked depth or visual
+    hull; no pixel of the held-out view is fitted. The table plane of the written bundle is
+    still found from every view."""
     import json
     import time
     from pathlib import Path
@@ -405,11 +407,12 @@ def align_to_capture(file, capture, out, cfg: Optional[AlignConfig] = None, obje
     fit_idx = [i for i in range(views.num_views) if i != holdout_view]
     scan = load_splats(file)
     scan.validate()
-    target, source = capture_target_points(views)
+    fit_views = views.select(fit_idx)
+    target, source = capture_target_points(fit_views)
     geo = align_scan(scan, target, cfg)
     res = geo
     if cfg.photometric_iters > 0:
-        moved, corr, pinfo = photometric_refine(geo.splats, views.select(fit_idx), cfg, progress)
+        moved, corr, pinfo = photometric_refine(geo.splats, fit_views, cfg, progress)
         pinfo["views"] = fit_idx
         res = AlignResult(corr @ geo.sim3, moved, {**geo.info, "photometric": pinfo,
                                                    "residual": residual_mm(moved, target, cfg.trim_distance)})
