@@ -410,7 +410,9 @@ class SomaSimNode(Node):
             try:
                 job["n"] = self._reset_work(req, ticket)
             except BaseException as exc:  # noqa: BLE001 - every failure leaves the old scene running
-                job["error"] = exc
+                # only the message is kept: the exception's traceback holds the request (a refused
+                # 128 MB cloud among them) in a reference cycle with `job` until a garbage collection
+                job["error"] = _one_line(exc)
             finally:
                 done.set()
                 with self._reset_mutex:
@@ -425,7 +427,7 @@ class SomaSimNode(Node):
                 if ticket["abandoned"]:
                     return self._refuse(resp, f"not done within reset_timeout_s ({self.reset_timeout:g} s)")
         if "error" in job:
-            return self._refuse(resp, _one_line(job["error"]))
+            return self._refuse(resp, job["error"])
         n = job["n"]
         resp.success, resp.num_splats = True, n
         resp.message = f"scene reset: {n} splats"
