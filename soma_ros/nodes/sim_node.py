@@ -171,21 +171,21 @@ class SomaSimNode(Node):
         self.splat_rate_hz = _float_param(self, "splat_rate_hz", 5.0, "splat cloud publish rate, Hz (0 = none)", 0.0, 120.0)
         self.tf_rate_hz = _float_param(self, "tf_rate_hz", 10.0, "robot link /tf publish rate, Hz (0 = none)", 0.0, 1000.0)
         self.render_scale = _float_param(self, "render_scale", 1.0, "image scale relative to the bundle's cameras", 0.05, 4.0)
-        self.max_travel = _float_param(self, "max_object_travel_m", 2.0,
-                                       "a step that puts a splat this far outside the initial scene's bounding sphere "
-                                       "counts as diverged: logged, and the scene restarts (0 = no check), m", 0.0, 1000.0)
-        self.settle_time = _float_param(self, "settle_time_s", 2.0,
-                                        "settle after this long with the robot out of reach and the object still "
-                                        "(slower than settle_speed_mps): the current configuration becomes the new "
-                                        "initial state, which stops a learned model's slow creep (0 = never), s",
-                                        0.0, 3600.0)
-        self.settle_speed = _float_param(self, "settle_speed_mps", 0.01,
-                                         "a splat slower than this counts as still for settling, m/s", 1e-6, 10.0)
-        self.passive_friction = _float_param(self, "passive_friction", 0.5,
-                                             "passive-object rule: when no force but gravity, the support and direct "
-                                             "effects acts, the learned dynamics may not speed the object up "
-                                             "horizontally or upwards, and on the table Coulomb friction with this "
-                                             "coefficient brakes it (negative = off)", -1.0, 10.0)
+        _float_param(self, "max_object_travel_m", 2.0,
+                     "a step that puts a splat this far outside the initial scene's bounding sphere "
+                     "counts as diverged: logged, and the scene restarts (0 = no check), m", 0.0, 1000.0)
+        _float_param(self, "settle_time_s", 2.0,
+                     "settle after this long with the robot out of reach and the object still "
+                     "(slower than settle_speed_mps): the current configuration becomes the new "
+                     "initial state, which stops a learned model's slow creep (0 = never), s",
+                     0.0, 3600.0)
+        _float_param(self, "settle_speed_mps", 0.01,
+                     "a splat slower than this counts as still for settling, m/s", 1e-6, 10.0)
+        _float_param(self, "passive_friction", 0.5,
+                     "passive-object rule: when no force but gravity, the support and direct "
+                     "effects acts, the learned dynamics may not speed the object up "
+                     "horizontally or upwards, and on the table Coulomb friction with this "
+                     "coefficient brakes it (negative = off)", -1.0, 10.0)
         p("passive_exempt_grasped", True, ParameterDescriptor(
             description="passive-object rule: steps where the model's own terms (its robot coupling) act with the "
                         "gripper closed are not passive, as in its training episodes (false: the rule on every step)"))

@@ -108,7 +108,6 @@ def test_cameras_helpers():
     assert cams.to(dtype=torch.float64).K.dtype == torch.float64
     with pytest.raises(ValueError, match="names"):
         Cameras(K=K[None], world_to_cam=torch.eye(4)[None], width=4, height=4, names=["a", "b"])
-
     with pytest.raises(ValueError, match="K must be"):
         Cameras(K=torch.eye(4)[None], world_to_cam=torch.eye(4)[None], width=4, height=4)
     with pytest.raises(IndexError):
