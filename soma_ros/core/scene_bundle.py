@@ -9,18 +9,26 @@ A scene bundle is a directory::
 
 ``scene.json``::
 
-    {"version": 1,
+    {"version": 2,
      "sim_frame": "world",             # frame of splats and cameras
      "object": "rope",                 # object config name (hierarchy thresholds)
      "dt": 0.0333,                     # s, the frame interval the model was trained at
      "gravity": [gx, gy, gz],          # m/s^2, simulation frame
      "table": {"normal": [3], "offset": d},   # n.x + d = 0, n against gravity
      "robot": {"config": "panda" | path, "base_to_sim": Sim3 dict},
-     "cameras": [{"name", "width", "height", "K": [[3x3]],
+     "cameras": [{"name", "width", "height", "K": [[3x3]],         # pixel centres at +0.5 (below)
                   "cam_to_sim": [[4x4]]                      # fixed camera, or
                   | "mount": {"link": L, "link_to_cam": [[4x4]]}}]}   # on a robot link
 
 All units are SI (metres, seconds); poses are OpenCV optical frames for cameras.
+
+``K`` follows the renderer's convention: pixel (u, v) covers [u, u + 1) x [v, v + 1), so its
+centre is at u + 0.5 (as in 3DGS), whereas a ROS ``CameraInfo`` puts pixel centres at integers
+(:func:`soma_ros.core.cameras.k_from_camera_info` converts). Version 1 bundles set up from a bag
+stored the CameraInfo ``K`` unconverted, half a pixel off; they are refused with a one-line
+message (set the scene up again). Version 1 bundles from a capture folder or a splat file
+(``soma reconstruct --capture``, ``soma scene align --capture``) already used the renderer's
+convention and load as they are.
 """
 
 from __future__ import annotations
@@ -34,7 +42,7 @@ import numpy as np
 
 from .splats import Splats
 
-VERSION = 1
+VERSION = 2
 
 
 @dataclass
@@ -130,8 +138,7 @@ class SceneBundle:
         if not meta_path.is_file():
             raise FileNotFoundError(f"scene bundle {folder} has no scene.json")
         meta = json.loads(meta_path.read_text())
-        if int(meta.get("version", 0)) != VERSION:
-            raise ValueError(f"scene bundle {folder}: version {meta.get('version')} is not {VERSION}")
+        _check_version(folder, meta)
         try:
             return SceneBundle(
                 splats=load_splats(folder / "splats.ply"), gravity=np.asarray(meta["gravity"], dtype=np.float64),
@@ -143,6 +150,19 @@ class SceneBundle:
             )
         except KeyError as exc:
             raise ValueError(f"scene bundle {folder}: scene.json lacks {exc}") from None
+
+
+def _check_version(folder: Path, meta: dict) -> None:
+    """Refuse a scene.json this version cannot read correctly (see the module docstring)."""
+    version = meta.get("version")
+    if version == VERSION:
+        return
+    if version == 1:
+        if "source_bag" not in (meta.get("extra") or {}):
+            return  # capture or splat-file cameras: K was already in the renderer's convention
+        raise ValueError(f"scene bundle {folder} is version 1, set up from a bag with its CameraInfo K half a "
+                         f"pixel off; set it up again (soma train into a new --out, or soma reconstruct --bag)")
+    raise ValueError(f"scene bundle {folder}: version {version} is not {VERSION}")
 
 
 def _jsonable(x):
