@@ -23,8 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import platform
 import statistics
 import time
 from typing import Optional, Sequence
@@ -32,6 +30,7 @@ from typing import Optional, Sequence
 import torch
 
 from soma_ros.core.config import load_model_config
+from soma_ros.core.machine import machine_description
 from soma_ros.core.simulator import RobotAction, SceneContext, Simulator
 from soma_ros.core.splats import Splats
 
@@ -132,27 +131,6 @@ def bench_render_rows(n_list: Sequence[int], device: str = "cpu", repeats: int =
         return {n: None for n in n_list}
     rows = bench_render(n_splats_list=list(n_list), resolutions=((320, 240),), device=device, repeats=repeats, warmup=1)
     return {r["n_splats"]: r["fwd_ms"] for r in rows}
-
-
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def machine_description(device: str = "cpu") -> str:
-    s = (
-        f"{_cpu_model()} | {os.cpu_count()} cores | torch {torch.__version__} | "
-        f"torch threads {torch.get_num_threads()} | device {device}"
-    )
-    if str(device).startswith("cuda") and torch.cuda.is_available():
-        s += f" ({torch.cuda.get_device_name(torch.device(device))})"
-    return s
 
 
 def format_table(rows: list[dict], render: dict) -> str:

@@ -452,9 +452,9 @@ def with_cameras(scene_dir: Path, n_cams: int, out_dir: Path) -> tuple[Path, lis
 
 
 def machine_line(torch_threads: int) -> str:
-    from benchmarks.bench_render import _cpu_model
+    from soma_ros.core.machine import cpu_model
 
-    return (f"{_cpu_model()} | {os.cpu_count()} cores | node torch threads {torch_threads} | "
+    return (f"{cpu_model()} | {os.cpu_count()} cores | node torch threads {torch_threads} | "
             f"torch {torch.__version__} | Python {sys.version.split()[0]}")
 
 

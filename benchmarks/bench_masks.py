@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from soma_ros.core.machine import cpu_model
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -73,7 +75,7 @@ def main(argv=None) -> int:
                     r["robot"] += [mask_iou(rm[t], s.robot_mask[t]) for t in range(ep.num_frames)]
                     r["s_per_frame"].append(dt)
     load1 = os.getloadavg()
-    print(f"machine: {platform.node()} {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+    print(f"machine: {platform.node()} {cpu_model()}, {os.cpu_count()} CPUs, "
           f"load average {load0[0]:.1f} -> {load1[0]:.1f}")
     print(f"{'object':8s} {'camera':12s} {'frames':>6s} {'object IoU med (p10)':>22s} {'robot IoU med (p10)':>22s} {'s/frame':>8s}")
     summary = {}

@@ -19,7 +19,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import resource
 import time
 from typing import Optional, Sequence
@@ -28,6 +27,7 @@ import torch
 
 from soma_ros.core.cameras import Cameras, look_at
 from soma_ros.core.geometry import covariance_from_scale_rot, quat_normalize
+from soma_ros.core.machine import machine_description
 from soma_ros.core.render import RenderConfig, render
 
 __all__ = ["bench_render", "make_bench_scene", "machine_description"]
@@ -58,26 +58,6 @@ def make_bench_scene(n: int, width: int, height: int, device="cpu", seed: int = 
     cams = Cameras.from_cam_to_world(K, c2w, width, height, names=["bench"])
     return (means.to(device), scales.to(device), quats.to(device), colors.to(device),
             opac.to(device), cams.to(device))
-
-
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def machine_description(device="cpu") -> str:
-    dev = str(device)
-    s = (f"{_cpu_model()} | {os.cpu_count()} cores | torch {torch.__version__} "
-         f"| torch threads {torch.get_num_threads()} | device {dev}")
-    if dev.startswith("cuda") and torch.cuda.is_available():
-        s += f" ({torch.cuda.get_device_name(torch.device(dev))})"
-    return s
 
 
 def _reset_peak_rss() -> bool:

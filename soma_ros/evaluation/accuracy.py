@@ -38,7 +38,6 @@ import fcntl
 import json
 import math
 import os
-import platform
 import shutil
 import sys
 import time
@@ -50,6 +49,7 @@ import torch
 import yaml
 
 from soma_ros.core.config import ConfigError, from_dict, load_object_config, read_config, to_dict
+from soma_ros.core.machine import machine_info
 from soma_ros.core.spring_mass import SpringMassConfig
 from soma_ros.paths import resolve_config
 
@@ -502,12 +502,6 @@ def _command_line() -> str:
     return " ".join(sys.argv)
 
 
-def _machine() -> dict:
-    return {"platform": platform.platform(), "python": platform.python_version(), "torch": torch.__version__,
-            "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
-
-
 def _json_safe(x):
     if isinstance(x, float) and not math.isfinite(x):
         return None
@@ -538,7 +532,7 @@ def run_bench(bench: BenchConfig, out: Path, objects: Optional[Sequence[str]] = 
     table: dict = json.loads(table_path.read_text()) if table_path.is_file() and not fresh else {}
     meta_path = out / "bench.json"
     meta: dict = json.loads(meta_path.read_text()) if meta_path.is_file() and not fresh else {}
-    meta.update({"preset": bench.name, "config": to_dict(bench), "machine": _machine(), "protocol": PROTOCOL,
+    meta.update({"preset": bench.name, "config": to_dict(bench), "machine": machine_info(), "protocol": PROTOCOL,
                  "command": _command_line()})
     meta.setdefault("objects", {})
     ecfg = bench.eval_config()

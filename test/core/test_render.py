@@ -344,3 +344,15 @@ def test_bench_render_smoke():
     assert r["n_splats"] == 300 and (r["width"], r["height"]) == (64, 48) and r["backend"] == expect
     assert r["fwd_ms"] > 0 and r["fwdbwd_ms"] > 0 and r["peak_rss_mb"] > 0 and 0.1 < r["coverage"] < 1
     assert "64x48" in format_table(rows) and "cores" in machine_description()
+
+
+def test_the_machine_is_named_by_its_cpu_model_and_torch():
+    import os
+
+    from soma_ros.core.machine import cpu_model, machine_description, machine_info
+
+    info = machine_info()
+    assert info["cpu"] == cpu_model() and info["cpu"].strip()
+    assert info["torch"] == torch.__version__ and info["torch_threads"] == torch.get_num_threads()
+    line = machine_description("cpu")
+    assert line.startswith(cpu_model()) and f"{os.cpu_count()} cores" in line and line.endswith("device cpu")
