@@ -42,7 +42,8 @@ def view_metrics(renders: torch.Tensor, views, names: Optional[Sequence[str]] = 
     evaluation protocol's full-image PSNR / SSIM / LPIPS of (render, measured x mask), see
     :func:`soma_ros.core.metrics.image_metrics`. With ``alphas`` ([V, H, W]) also
     ``alpha_iou``: the rendered silhouette (alpha > 0.5) against the mask, intersection over
-    union, which shows whether the splats sit where the view sees the object."""
+    union, which shows whether the splats sit where the view sees the object, and
+    ``alpha_inside``: the mean rendered alpha over the mask (whether the object is covered at all)."""
     from soma_ros.core.metrics import image_metrics, ssim
 
     rows = []
@@ -61,6 +62,7 @@ def view_metrics(renders: torch.Tensor, views, names: Optional[Sequence[str]] = 
             sil = alphas[v] > 0.5
             union = int((sil | m).sum())
             r["alpha_iou"] = float((sil & m).sum()) / union if union else 1.0
+            r["alpha_inside"] = float(alphas[v][m].mean()) if bool(m.any()) else float("nan")
         rows.append(r)
     return rows
 

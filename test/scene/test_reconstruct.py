@@ -38,7 +38,7 @@ def test_real_capture_holdout(shared_dir, tmp_path):
     assert m["holdout_view"] == 3 and m["train_views"] == [0, 1, 2]
     assert math.isfinite(m["psnr_holdout"]) and m["psnr_holdout"] > 14.0, m
     assert math.isfinite(m["psnr_holdout_init"]) and len(m["psnr_train_views"]) == 3
-    assert all(0.0 <= r["alpha_iou"] <= 1.0 for r in m["per_view"]), m["per_view"]
+    assert all(0.0 <= r["alpha_iou"] <= 1.0 and 0.0 <= r["alpha_inside"] <= 1.0 for r in m["per_view"]), m["per_view"]
     assert (out / "holdout_compare.png").is_file() and (out / "splats.ply").is_file()
     bad = _soma("reconstruct", "--capture", str(cap), "--holdout-view", "7", "--out", str(tmp_path / "x"), "--quiet")
     assert bad.returncode == 2 and "out of range" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
