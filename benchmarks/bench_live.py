@@ -452,10 +452,10 @@ def with_cameras(scene_dir: Path, n_cams: int, out_dir: Path) -> tuple[Path, lis
 
 
 def machine_line(torch_threads: int) -> str:
-    from soma_ros.core.machine import cpu_model
+    """The machine line with the node's torch threads (the process measured) and the Python version."""
+    from soma_ros.core.machine import machine_description
 
-    return (f"{cpu_model()} | {os.cpu_count()} cores | node torch threads {torch_threads} | "
-            f"torch {torch.__version__} | Python {sys.version.split()[0]}")
+    return f"{machine_description(torch_threads=torch_threads)} | Python {sys.version.split()[0]}"
 
 
 def load_line() -> str:

@@ -29,10 +29,15 @@ def _gpu_name(device: str) -> str | None:
     return None
 
 
-def machine_description(device: str = "cpu") -> str:
-    """One line: CPU model | cores | torch version | torch threads | device (and its GPU's name)."""
+def machine_description(device: str = "cpu", torch_threads: int | None = None) -> str:
+    """One line: CPU model | cores | torch version | torch threads | device (and its GPU's name).
+
+    ``torch_threads`` names the threads of the process that was measured when that is not
+    this one (a node the benchmark started); by default this process's own.
+    """
+    threads = torch.get_num_threads() if torch_threads is None else int(torch_threads)
     s = (f"{cpu_model()} | {os.cpu_count()} cores | torch {torch.__version__} | "
-         f"torch threads {torch.get_num_threads()} | device {device}")
+         f"torch threads {threads} | device {device}")
     gpu = _gpu_name(str(device))
     return s + (f" ({gpu})" if gpu else "")
 
@@ -41,4 +46,4 @@ def machine_info() -> dict:
     """The same as a JSON-able dict, with the platform and the Python version."""
     return {"cpu": cpu_model(), "platform": platform.platform(), "python": sys.version.split()[0],
             "torch": torch.__version__, "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
+            "cuda": _gpu_name("cuda:0")}

@@ -356,3 +356,6 @@ def test_the_machine_is_named_by_its_cpu_model_and_torch():
     assert info["torch"] == torch.__version__ and info["torch_threads"] == torch.get_num_threads()
     line = machine_description("cpu")
     assert line.startswith(cpu_model()) and f"{os.cpu_count()} cores" in line and line.endswith("device cpu")
+    assert f"torch threads {torch.get_num_threads()} |" in line
+    # another process's threads (a node the benchmark started) are named when given
+    assert "torch threads 7 |" in machine_description("cpu", torch_threads=7)
