@@ -21,6 +21,8 @@ import typing
 from pathlib import Path
 from typing import Any, Iterator
 
+from . import documented_parser
+
 #: (title, config folder, "module:Class", one line on where the file is used)
 FAMILIES: list[tuple[str, str, str, str]] = [
     ("Training", "config/train", "soma_ros.training.config:TrainConfig", "`soma train --config NAME`"),
@@ -184,9 +186,7 @@ def reference() -> str:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("config", help="the config reference and resolved configs",
-                              description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter,
-                              epilog="\n".join(__doc__.splitlines()[2:]))
+    p = documented_parser(subparsers, "config", "the config reference and resolved configs", __doc__)
     sub = p.add_subparsers(dest="config_command", metavar="ACTION", required=True)
     show = sub.add_parser("show", help="print a config with its bases applied")
     show.add_argument("name", help="a path, or FAMILY/NAME under config/ (e.g. train/tiny)")

@@ -21,11 +21,11 @@ import argparse
 import sys
 from pathlib import Path
 
+from . import documented_parser
+
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("dataset", help="check / inspect a folder of recordings before training",
-                              description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter,
-                              epilog="\n".join(__doc__.splitlines()[2:]))
+    p = documented_parser(subparsers, "dataset", "check / inspect a folder of recordings before training", __doc__)
     p.add_argument("action", choices=["check", "inspect"])
     p.add_argument("data", nargs="+", metavar="DATA", help="a folder of bags, one bag, or several bags")
     p.add_argument("--config", default="tiny", help="train config whose robot, topics and mask settings apply")

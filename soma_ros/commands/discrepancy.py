@@ -21,13 +21,11 @@ import os
 import sys
 from pathlib import Path
 
+from . import documented_parser
+
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "discrepancy", help="find and name effects missing from the model",
-        description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="\n".join(__doc__.splitlines()[2:]),
-    )
+    p = documented_parser(subparsers, "discrepancy", "find and name effects missing from the model", __doc__)
     p.add_argument("--checkpoint", required=True, metavar="CKPT", help="run folder or its checkpoint.pt")
     p.add_argument("--data", required=True, metavar="MEASURED", help="measured dataset folder (manifest.json + bags)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")

@@ -21,13 +21,11 @@ import sys
 import time
 from pathlib import Path
 
+from . import documented_parser
+
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "eval", help="evaluate a checkpoint on a dataset (open-loop rollouts)",
-        description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="\n".join(__doc__.splitlines()[2:]),
-    )
+    p = documented_parser(subparsers, "eval", "evaluate a checkpoint on a dataset (open-loop rollouts)", __doc__)
     p.add_argument("--checkpoint", required=True, metavar="CKPT",
                    help="run folder, checkpoint.pt, spring_mass.pt (or its folder), or 'static'")
     p.add_argument("--data", required=True, nargs="+", metavar="DATA",

@@ -45,6 +45,8 @@ from typing import Iterator, Optional, Sequence
 
 import numpy as np
 
+from . import documented_parser
+
 #: name of the output bag folder inside OUT (like `make demo`'s live_bag/)
 BAG_DIR = "resim_bag"
 #: the split name of a bag that is not an episode of the run's dataset
@@ -52,11 +54,7 @@ RESIM_SPLIT = "resim"
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "resim", help="open-loop resimulation of one bag, without ROS running",
-        description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="\n".join(__doc__.splitlines()[2:]),
-    )
+    p = documented_parser(subparsers, "resim", "open-loop resimulation of one bag, without ROS running", __doc__)
     p.add_argument("--checkpoint", required=True, metavar="CKPT",
                    help="run folder, checkpoint.pt, spring_mass.pt (or its folder), or 'static' (with --run)")
     p.add_argument("--bag", required=True, metavar="BAG", help="recorded episode: a rosbag2 folder (sqlite3 or mcap)")
