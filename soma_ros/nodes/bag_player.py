@@ -31,7 +31,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import math
 import signal
 import sys
 import time
@@ -39,6 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator, Optional, Sequence
 from ..core.errors import NodeError
+from .arguments import non_negative_float, non_negative_int, positive_float
 
 PROG = "soma_bag_player"
 JOINT_STATES = "/joint_states"
@@ -113,27 +113,6 @@ def run_with_stop(body: Callable[[Optional[list[str]], "StopFlag"], int], argv: 
 
 
 # ----------------------------------------------------------------- arguments
-def _positive_float(text: str) -> float:
-    v = float(text)
-    if not math.isfinite(v) or v <= 0:
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
-    return v
-
-
-def _non_negative_float(text: str) -> float:
-    v = float(text)
-    if not math.isfinite(v) or v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
-    return v
-
-
-def _non_negative_int(text: str) -> int:
-    v = int(text)
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
-    return v
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG, description="Publish a rosbag2's /joint_states (and cameras, /tf_static) with its original timing.")
@@ -143,14 +122,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cameras", action="store_true",
                    help="also play every Image / CompressedImage / CameraInfo topic of the bag")
     p.add_argument("--tf-static", action="store_true", help="also play /tf_static (latched)")
-    p.add_argument("--rate", type=_positive_float, default=1.0, help="playback speed factor (2.0: twice as fast)")
+    p.add_argument("--rate", type=positive_float, default=1.0, help="playback speed factor (2.0: twice as fast)")
     p.add_argument("--loop", action="store_true", help="play again from the start offset until interrupted")
-    p.add_argument("--start-offset", type=_non_negative_float, default=0.0, metavar="S",
+    p.add_argument("--start-offset", type=non_negative_float, default=0.0, metavar="S",
                    help="skip the first S seconds of the bag")
-    p.add_argument("--wait-for-subscribers", type=_non_negative_int, default=0, metavar="N",
+    p.add_argument("--wait-for-subscribers", type=non_negative_int, default=0, metavar="N",
                    help=f"before playing, wait until N subscribers matched on {JOINT_STATES} "
                         "(and every QoS-compatible subscriber already in the graph on each played topic, for 0.3 s)")
-    p.add_argument("--wait-timeout", type=_positive_float, default=30.0, metavar="S",
+    p.add_argument("--wait-timeout", type=positive_float, default=30.0, metavar="S",
                    help="give up waiting for subscribers after S seconds (exit 1)")
     stamp = p.add_mutually_exclusive_group()
     stamp.add_argument("--restamp", dest="restamp", action="store_true", default=True,

@@ -29,13 +29,13 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
+from .arguments import positive_float, positive_int
 from .bag_player import StopFlag, run_with_stop
 from ..core.errors import NodeError
 
@@ -48,31 +48,17 @@ class RecorderError(NodeError):
 
 
 # ----------------------------------------------------------------- arguments
-def _positive_float(text: str) -> float:
-    v = float(text)
-    if not math.isfinite(v) or v <= 0:
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
-    return v
-
-
-def _positive_int(text: str) -> int:
-    v = int(text)
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
-    return v
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=PROG, description="Record ROS 2 topics into a rosbag2 (rosbags writer, format 9).")
     p.add_argument("--out", required=True, help="output bag directory (must not exist)")
     p.add_argument("--topics", required=True, nargs="+", metavar="TOPIC[:TYPE]",
                    help="topics to record; with TYPE (pkg/msg/Name) a topic without publishers yet is recorded too")
-    p.add_argument("--duration", type=_positive_float, metavar="S", help="stop after S seconds of recording")
-    p.add_argument("--max-messages", type=_positive_int, metavar="N", help="stop after N messages in total")
+    p.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds of recording")
+    p.add_argument("--max-messages", type=positive_int, metavar="N", help="stop after N messages in total")
     p.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3", help="rosbag2 storage plugin")
-    p.add_argument("--discovery-timeout", type=_positive_float, default=10.0, metavar="S",
+    p.add_argument("--discovery-timeout", type=positive_float, default=10.0, metavar="S",
                    help="wait at most S seconds for the topics' publishers to appear in the graph")
-    p.add_argument("--queue", type=_positive_int, default=100, metavar="N", help="subscription history depth")
+    p.add_argument("--queue", type=positive_int, default=100, metavar="N", help="subscription history depth")
     return p
 
 
