@@ -686,3 +686,32 @@ def test_the_rod_bending_model_needs_the_newton_solver_and_a_known_name():
         PhysicsPrior(_rod_params(bend_model="beam"))
     with pytest.raises(ConfigError, match="newton"):
         PhysicsPrior(_rod_params(solver="jacobi"))
+
+
+def test_a_gripper_closing_between_sparse_nodes_holds_the_cells_of_the_splats_between_its_fingers():
+    # a 30 x 30 cm sheet of 900 splats on 9 nodes (spacing ~10 cm): no node centre within the
+    # 2 cm attach radius of a grip between two of them, yet the fingers close on the sheet
+    p = PhysicsPrior.Params(num_nodes=9)
+    g = torch.linspace(0.0, 0.3, 30)
+    pts = torch.stack(torch.meshgrid(g, g, indexing="ij"), dim=-1).reshape(-1, 2)
+    pts = torch.cat([pts, torch.full((pts.shape[0], 1), 0.002)], dim=1)
+    lay = build_layout(pts, torch.full((pts.shape[0],), 0.1 / pts.shape[0]), UP, torch.tensor(0.0), p)
+    d = torch.cdist(lay.rest, lay.rest)
+    d.fill_diagonal_(math.inf)
+    i, j = divmod(int(d.argmin()), lay.num_nodes)
+    c = 0.5 * (lay.rest[i] + lay.rest[j])  # halfway between two neighbouring nodes, on the sheet
+    c[2] = 0.002
+    cp = torch.stack([c + torch.tensor([0.0, 0.0, 0.004]), c - torch.tensor([0.0, 0.0, 0.004])])
+    assert float((lay.rest - c).norm(dim=-1).min()) > p.attach_radius
+    assert grasp_nodes(lay, lay.rest, cp, p) is None  # node centres alone: the fingers hold nothing
+    grasp = grasp_nodes(lay, lay.rest, cp, p, pts)
+    near = (pts - c).norm(dim=-1) <= p.attach_radius
+    assert grasp is not None and bool(near.any())
+    assert set(torch.nonzero(grasp.held).flatten().tolist()) == set(lay.node_of[near].tolist())
+    # a node within reach keeps the node rule: the same grasp with or without the splats
+    c2 = lay.rest[i].clone()
+    cp2 = torch.stack([c2 + torch.tensor([0.0, 0.0, 0.004]), c2 - torch.tensor([0.0, 0.0, 0.004])])
+    assert torch.equal(grasp_nodes(lay, lay.rest, cp2, p).held, grasp_nodes(lay, lay.rest, cp2, p, pts).held)
+    # nothing within reach of either: no grasp
+    far = cp + torch.tensor([0.0, 0.0, 0.5])
+    assert grasp_nodes(lay, lay.rest, far, p, pts) is None

@@ -39,8 +39,9 @@ Model (per step t -> t+1; the grasp, and with ``carry_velocity`` a velocity lag,
   with no velocity away from the table (``inelastic_table``; otherwise a node that begins a
   substep below its floor keeps the push as velocity, and a rope landing on the table bounces).
 * **Gripper** (the action at t+1; control points move linearly from t within the step): when
-  the gripper closes, the nodes within ``attach_radius`` of the control points' centroid are
-  grasped, each held at its offset to that centroid (compliance ``grip_compliance``)
+  the gripper closes, the nodes within ``attach_radius`` of the control points' centroid (where
+  there is none, the nodes of the cells with a splat that close: the material between the
+  fingers, however sparse the nodes) are grasped, each held at its offset to that centroid (compliance ``grip_compliance``)
   until the gripper opens (:class:`Grasp`, carried in ``SimState.aux``); free nodes are pushed out
   of ``contact_radius`` around every control point. A **tilting grip** (``grip_tilt_compliance`` >
   0, Newton solver, the hard grip): the held section may also turn about the closing axis, on a
@@ -306,11 +307,19 @@ def closing_axis(cp: torch.Tensor) -> Optional[torch.Tensor]:
     return vh[2].to(cp.dtype)
 
 
-def grasp_nodes(lay: PhysicsLayout, x: torch.Tensor, cp: torch.Tensor, p: "PhysicsPrior.Params") -> Optional[Grasp]:
+def grasp_nodes(lay: PhysicsLayout, x: torch.Tensor, cp: torch.Tensor, p: "PhysicsPrior.Params",
+                splats: Optional[torch.Tensor] = None) -> Optional[Grasp]:
     """The grasp a gripper closing now makes: the nodes within ``attach_radius`` of the control
-    points' centroid, each held at its offset to it (None: nothing there)."""
+    points' centroid; where there is none and the splat positions ``splats`` [N, 3] are given, the
+    nodes of the cells with a splat that close (the material between the fingers: with nodes
+    sparser than ``attach_radius``, a closing gripper would otherwise hold nothing wherever the
+    node sampling put no cell centre near it). Each held node keeps its offset to the centroid
+    (None: nothing there)."""
     centre = cp.mean(dim=0)
     held = (x.detach() - centre).norm(dim=-1) <= p.attach_radius  # [K]
+    if splats is not None and not bool(held.any()):
+        near = (splats.detach() - centre).norm(dim=-1) <= p.attach_radius  # [N]
+        held = held.index_fill(0, lay.node_of[near], True)
     if not bool(held.any()):
         return None
     return Grasp(held, (x - centre).detach())
@@ -737,7 +746,8 @@ class PhysicsPrior(Effect):
         if robot:
             cp0 = cp1 - float(ctx.dt) * ctx.control_velocities
             if float(ctx.gripper) < self.params.grip_threshold:  # closed: keep the grasp made when it closed
-                grasp = (ctx.state_in or {}).get(self.name) or grasp_nodes(lay, x, cp0, self.params)
+                grasp = (ctx.state_in or {}).get(self.name) or grasp_nodes(lay, x, cp0, self.params,
+                                                                             ctx.positions)
         carry = self.params.carry_velocity
         lag_key = self.name + ":lag"  # the state entry of the velocity lag (carry_velocity)
         v0 = v
