@@ -41,13 +41,13 @@ Model (per step t -> t+1; the grasp, and with ``carry_velocity`` a velocity lag,
 * **Gripper** (the action at t+1; control points move linearly from t within the step): when
   the gripper closes, the nodes within ``attach_radius`` of the control points' centroid (where
   there is none, the nodes of the cells with a splat that close: the material between the
-  fingers, however sparse the nodes) are grasped, each held at its offset to that centroid (compliance ``grip_compliance``)
-  until the gripper opens (:class:`Grasp`, carried in ``SimState.aux``); free nodes are pushed out
-  of ``contact_radius`` around every control point. A **tilting grip** (``grip_tilt_compliance`` >
-  0, Newton solver, the hard grip): the held section may also turn about the closing axis, on a
-  rotational spring, as a rope pinched between two pads turns under a long arm's weight (the
-  reference world's soft grasp constraints tilt its held section about 19 degrees when the rope
-  is held 3 to 5 of 25 vertices from an end).
+  fingers, however sparse the nodes) are grasped, each held at its offset to that centroid
+  (compliance ``grip_compliance``) until the gripper opens (:class:`Grasp`, carried in
+  ``SimState.aux``); free nodes are pushed out of ``contact_radius`` around every control point.
+  A **tilting grip** (``grip_tilt_compliance`` > 0, Newton solver, the hard grip): the held
+  section may also turn about the closing axis, on a rotational spring, as a rope pinched between
+  two pads turns under a long arm's weight (the reference world's soft grasp constraints tilt its
+  held section about 19 degrees when the rope is held 3 to 5 of 25 vertices from an end).
   A **compliant grip** (``PhysicsMods.grip`` = g > 0, gripper_slip's ``loosen``) replaces the held
   nodes' hard constraint by a spring-damper to their place in the fingers that carries the whole
   object: hanging rigidly in it, the object would be a critically damped oscillator of time
