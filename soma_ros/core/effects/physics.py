@@ -317,10 +317,12 @@ def grasp_nodes(lay: PhysicsLayout, x: torch.Tensor, cp: torch.Tensor, p: "Physi
     (None: nothing there)."""
     centre = cp.mean(dim=0)
     held = (x.detach() - centre).norm(dim=-1) <= p.attach_radius  # [K]
-    if splats is not None and not bool(held.any()):
+    holds = bool(held.any())
+    if not holds and splats is not None:
         near = (splats.detach() - centre).norm(dim=-1) <= p.attach_radius  # [N]
         held = held.index_fill(0, lay.node_of[near], True)
-    if not bool(held.any()):
+        holds = bool(near.any())
+    if not holds:
         return None
     return Grasp(held, (x - centre).detach())
 
