@@ -120,10 +120,8 @@ def generate_episode(
         task = allowed[(start + int(index)) % len(allowed)]
     elif task not in allowed:
         raise ValueError(f"task '{task}' is not configured for {obj_name} (allowed: {', '.join(allowed)})")
-    yaw = np.radians(cfg.robot_base_yaw_deg)
-    base_quat = np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
     if ik is None:
-        ik = ArmIK(rc, np.asarray(cfg.robot_base_xyz, float), base_quat)
+        ik = arm_ik(cfg)
     spf = cfg.steps_per_frame()
     table_z = cfg.table.height
     plan = geom = None
@@ -252,6 +250,27 @@ def generate_episode(
     return {"name": name, "bag": name, "task": task, "frames": n_frames, "seconds_to_generate": round(seconds, 3)}
 
 
+def arm_ik(cfg: WorldConfig) -> ArmIK:
+    """The world's arm IK: its robot at ``robot_base_xyz``, turned ``robot_base_yaw_deg`` about z."""
+    rc = cfg.robot_config
+    assert rc is not None
+    yaw = np.radians(cfg.robot_base_yaw_deg)
+    return ArmIK(rc, np.asarray(cfg.robot_base_xyz, float), np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]))
+
+
+_WORKER_IK: Optional[ArmIK] = None  # a dataset worker's arm IK, built once per process (_start_worker)
+
+
+def _start_worker(cfg: WorldConfig) -> None:
+    global _WORKER_IK
+    _WORKER_IK = arm_ik(cfg)
+
+
+def _worker_episode(*args, **kwargs) -> dict:
+    """:func:`generate_episode` in a dataset worker, with the worker's arm IK."""
+    return generate_episode(*args, ik=_WORKER_IK, **kwargs)
+
+
 def _clear_outputs(out_dir: Path, names: list[str]) -> None:
     for n in names:
         p = out_dir / n
@@ -310,8 +329,6 @@ def generate_dataset(
         _clear_outputs(out_dir, names)
     rc = cfg.robot_config
     assert rc is not None
-    yaw = np.radians(cfg.robot_base_yaw_deg)
-    ik = ArmIK(rc, np.asarray(cfg.robot_base_xyz, float), np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]))
     split = split_indices(n, pre.split_ratio, seed)
     manifest = {
         "object": obj_name,
@@ -343,6 +360,7 @@ def generate_dataset(
 
     common = dict(storage=storage, task=task, frames=frames)
     if workers == 1 or n == 1:
+        ik = arm_ik(cfg)
         for i in range(n):
             add(generate_episode(cfg, obj_name, preset, i, seed, eff_names, out_dir, ik=ik, progress=progress,
                                  **common))
@@ -351,8 +369,9 @@ def generate_dataset(
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
         # spawn: a fresh interpreter per worker (MuJoCo's GL context and torch threads do not survive a fork)
-        with ProcessPoolExecutor(max_workers=min(workers, n), mp_context=multiprocessing.get_context("spawn")) as pool:
-            futures = [pool.submit(generate_episode, cfg, obj_name, preset, i, seed, eff_names, out_dir, **common)
+        with ProcessPoolExecutor(max_workers=min(workers, n), mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=_start_worker, initargs=(cfg,)) as pool:
+            futures = [pool.submit(_worker_episode, cfg, obj_name, preset, i, seed, eff_names, out_dir, **common)
                        for i in range(n)]
             for fut in as_completed(futures):
                 add(fut.result())
