@@ -22,6 +22,8 @@ import tempfile
 import time
 from typing import Callable, Optional, Sequence
 
+from ..core.processes import stop_process_group
+
 _counter = itertools.count()
 
 
@@ -67,16 +69,10 @@ class RosProcess:
         return self.proc.wait(timeout=timeout)
 
     def stop(self, timeout: float = 10.0) -> Optional[int]:
+        """SIGINT to the process and its group (a node's clean shutdown), SIGKILL after ``timeout``
+        seconds; returns the exit code."""
         if self.proc.poll() is None:
-            try:
-                os.killpg(self.proc.pid, signal.SIGINT)
-                self.proc.wait(timeout=timeout)
-            except (subprocess.TimeoutExpired, ProcessLookupError):
-                try:
-                    os.killpg(self.proc.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
-                self.proc.wait(timeout=timeout)
+            stop_process_group(self.proc, (signal.SIGINT, signal.SIGKILL), timeout)
         self.log.close()
         return self.proc.returncode
 

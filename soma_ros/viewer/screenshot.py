@@ -15,9 +15,7 @@ from __future__ import annotations
 import argparse
 import base64
 import json
-import os
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
@@ -25,6 +23,8 @@ import time
 import urllib.request
 from pathlib import Path
 from typing import Optional
+
+from ..core.processes import stop_process_group
 
 __all__ = ["screenshot", "CHROMIUM_FLAGS"]
 
@@ -141,28 +141,8 @@ def screenshot(url: str, out: Path, wait_s: float = 20.0, size: tuple[int, int] 
                                         png, stable_region, deadline)
             out.write_bytes(png)
         finally:
-            _stop_group(proc)
+            stop_process_group(proc)
     return out
-
-
-def _stop_group(proc: subprocess.Popen, timeout_s: float = 10.0) -> None:
-    """Stop the browser and its helper processes (its own process group): SIGTERM, then SIGKILL."""
-    for sig in (signal.SIGTERM, signal.SIGKILL):
-        try:
-            os.killpg(proc.pid, sig)
-        except (ProcessLookupError, PermissionError):
-            pass
-        try:
-            proc.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            continue
-        deadline = time.monotonic() + timeout_s  # the helpers of the group
-        while time.monotonic() < deadline:
-            try:
-                os.killpg(proc.pid, 0)
-            except (ProcessLookupError, PermissionError):
-                return
-            time.sleep(0.05)
 
 
 def main(argv=None) -> int:
