@@ -951,7 +951,9 @@ def train(cfg: TrainConfig, data_dir: Path, out_dir: Path, scene_dir: Optional[P
     for tests and time-boxed jobs). ``max_seconds``: stop once the training loop (iterations and
     their validations, from the first iteration on; not the scene set-up) has run this long, then
     validate the weights reached (unless just validated) and checkpoint them: a time-boxed run whose
-    kept checkpoint has seen its last weights; resumable like a ``max_iterations`` stop.
+    kept checkpoint has seen its last weights; resumable like a ``max_iterations`` stop. Under DDP
+    the replicas stop at the same iteration, on rank 0's clock read at that iteration's forward pass
+    (it travels in the collective that every iteration makes anyway).
     ``log``: where one-line messages go (rank 0 only).
     """
     if max_seconds is not None and not max_seconds > 0:
@@ -1199,8 +1201,12 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         t0 = time.time()
         loss, parts = ddp(ep, init, plan)
         finite_loss = bool(torch.isfinite(loss.detach()))
-        if dist.distributed:  # every replica decides alike: skip if any replica's loss is not finite
-            finite_loss = dist.all_reduce_sum([0.0 if finite_loss else 1.0])[0] == 0.0
+        loop_s = time.time() - t_loop
+        if dist.distributed:
+            # one collective per iteration, so every replica decides alike: skip if any replica's loss is
+            # not finite, and (max_seconds) stop at the same iteration, on rank 0's clock at this forward pass
+            bad, loop_s = dist.all_reduce_sum([0.0 if finite_loss else 1.0, loop_s if dist.is_main else 0.0])
+            finite_loss = bad == 0.0
         opt.zero_grad(set_to_none=True)
         if finite_loss:
             loss.backward()  # (DDP's gradient all-reduce: every replica takes this branch or none)
@@ -1232,8 +1238,8 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         if validated:
             run_validation(it, it // ipe)
         if max_seconds is not None and it < stop:
-            # every rank stops at the same iteration: rank 0's clock decides
-            elapsed = dist.all_reduce_sum([time.time() - t_loop if dist.is_main else 0.0])[0]
+            # one process: the clock now; under DDP: rank 0's at the forward pass (shared above)
+            elapsed = loop_s if dist.distributed else time.time() - t_loop
             if elapsed >= max_seconds:
                 timed_out = True
                 if not validated:

@@ -313,6 +313,22 @@ def test_torchrun_two_processes_on_cpu(trained_run, lift_dataset, tmp_path):
     assert sim.hierarchy.sizes == load_checkpoint(trained_run["run"] / "checkpoint.pt").hierarchy.sizes
 
 
+def test_torchrun_time_boxed_replicas_stop_at_the_same_iteration(lift_dataset, tmp_path):
+    """``--max-minutes`` under DDP: rank 0's clock decides, so both replicas stop at the same
+    iteration with the same weights, and the run resumes like a one-process run."""
+    run = tmp_path / "ddp_boxed"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+           "-m", "soma_ros.cli", "train", "--data", str(lift_dataset), "--config", "tiny_mlp", "--out", str(run),
+           "--set", "schedule.iters_per_epoch=3", "--set", "schedule.stage1.epochs=1",
+           "--set", "schedule.stage2.epochs=1", "--quiet", "--max-minutes", "1e-6"]
+    p = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    s = json.loads((run / "summary.json").read_text())
+    assert s["world_size"] == 2 and s["timed_out"] and not s["complete"] and s["iterations"] == 1
+    ranks = [json.loads((run / "dist" / f"rank_{r}.json").read_text()) for r in (0, 1)]
+    assert ranks[0]["weights_checksum"] == ranks[1]["weights_checksum"]
+
+
 # --------------------------------------------------------------------------- units
 def test_at_rest_prefix_carries_no_gradient(lift_dataset):
     """Steps before the gripper can touch the object are exact no-ops, so running them without
