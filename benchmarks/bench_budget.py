@@ -28,7 +28,6 @@ import argparse
 import csv
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -127,7 +126,9 @@ def _write_curve(out: Path, obj: str, rows: list[dict]) -> None:
         ax.set_title(label, fontsize=9)
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    fig.suptitle(f"{obj}: the same config at more iterations ({platform.node() or 'cpu'})", fontsize=9)
+    from soma_ros.core.machine import cpu_model
+
+    fig.suptitle(f"{obj}: the same config at more iterations ({cpu_model()}, {os.cpu_count()} cores)", fontsize=9)
     fig.tight_layout()
     fig.savefig(out / f"budget_{obj}.png")
     plt.close(fig)
@@ -191,7 +192,9 @@ def schedule_cost(bench, obj: str, data: Path, out: Path, other: dict, repeats: 
                                  "cpu_s_each": per[k]} for k, c in sorted(counts.items())]}
     res["ratio"] = res["config"]["cpu_s"] / res["other"]["cpu_s"]
     res["episode"] = name
-    res["machine"] = {"node": platform.node(), "cpus": os.cpu_count(), "load": os.getloadavg()}
+    from soma_ros.core.machine import machine_info
+
+    res["machine"] = {**machine_info(), "load": os.getloadavg()}
     return res
 
 
