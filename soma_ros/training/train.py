@@ -1201,11 +1201,11 @@ def _train(cfg, data_dir, out_dir, scene_dir, max_iterations, dist: DistInfo, sa
         t0 = time.time()
         loss, parts = ddp(ep, init, plan)
         finite_loss = bool(torch.isfinite(loss.detach()))
-        loop_s = time.time() - t_loop
         if dist.distributed:
             # one collective per iteration, so every replica decides alike: skip if any replica's loss is
             # not finite, and (max_seconds) stop at the same iteration, on rank 0's clock at this forward pass
-            bad, loop_s = dist.all_reduce_sum([0.0 if finite_loss else 1.0, loop_s if dist.is_main else 0.0])
+            bad, loop_s = dist.all_reduce_sum([0.0 if finite_loss else 1.0,
+                                               time.time() - t_loop if dist.is_main else 0.0])
             finite_loss = bad == 0.0
         opt.zero_grad(set_to_none=True)
         if finite_loss:

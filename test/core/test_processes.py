@@ -34,14 +34,12 @@ def test_a_helper_that_ignores_sigterm_is_killed_with_its_group():
     proc = subprocess.Popen([sys.executable, "-c", _LEADER], stdout=subprocess.PIPE, text=True, process_group=0)
     helper = int(proc.stdout.readline())
     assert _alive(helper)
-    t0 = time.monotonic()
     stop_process_group(proc, (signal.SIGTERM, signal.SIGKILL), timeout_s=1.0)
     assert proc.returncode == -signal.SIGTERM  # the leader went at the first signal
     deadline = time.monotonic() + 5.0
     while _alive(helper) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert not _alive(helper)  # the helper survived SIGTERM and went at SIGKILL
-    assert time.monotonic() - t0 < 5.0
     proc.stdout.close()
 
 

@@ -315,7 +315,7 @@ def test_torchrun_two_processes_on_cpu(trained_run, lift_dataset, tmp_path):
 
 def test_torchrun_time_boxed_replicas_stop_at_the_same_iteration(lift_dataset, tmp_path):
     """``--max-minutes`` under DDP: rank 0's clock decides, so both replicas stop at the same
-    iteration with the same weights, and the run resumes like a one-process run."""
+    iteration with the same weights."""
     run = tmp_path / "ddp_boxed"
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
            "-m", "soma_ros.cli", "train", "--data", str(lift_dataset), "--config", "tiny_mlp", "--out", str(run),
