@@ -202,7 +202,7 @@ class DynamicsConfig:
     ``passive_exempt_closed``: the exemption holds only while the gripper is closed (gripper
     state < 0.5), where the coupling carries the object; with the gripper open the step stays
     passive (an open gripper's coupling drags, it does not carry, and exempting it let the
-    network lift a released rope under the hovering gripper: README, "The live node").
+    network lift a released rope under the hovering gripper: docs/design_decisions.md, "Model and simulator").
 
     """
 
