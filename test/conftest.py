@@ -118,7 +118,7 @@ def train_tiny_run(data: Path, run: Path, episodes: int, frames: int, seed: int 
 HEAVY_FIXTURES = {
     "tiny_run", "resim_out", "good_dataset", "clean_run", "bench_run", "trained_run", "two_episodes",
     "world", "reference", "world_bag", "rope_bag", "reference_scene", "guarded", "lift_dataset", "worlds",
-    "reports", "bag",
+    "reports", "bag", "arx_run",
     "ros_env", "ros_context",  # tests that start ROS nodes or processes
 }
 #: Tests that take more than about 10 s on a 2-core machine without any of those fixtures.

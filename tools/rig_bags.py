@@ -6,7 +6,8 @@
         [--storage sqlite3|mcap] [--manifest none|plain|entries]
 
 SRC_DATASET is a folder of bags (e.g. from `soma world`); every bag is rewritten into
-OUT/<bag name>. The evaluation-only ``/world/object_points`` topic is always dropped.
+OUT/<bag name>. The evaluation-only ``/world/object_points`` topic is dropped (kept only with
+``RigForm.keep_ground_truth``, for comparisons such as ``tools/retarget_robot.py``).
 
 * ``--strip-masks``: no ``/<cam>/object_mask`` / ``robot_mask`` topics.
 * ``--rename OLD=NEW``: a camera's topics and frame ids (image headers, TF frames) renamed.
@@ -50,6 +51,7 @@ class RigForm:
     depth_32f: bool = False
     info_from_depth: bool = False
     storage: str = "sqlite3"
+    keep_ground_truth: bool = False  # keep /world/object_points (a comparison of two forms of one episode)
 
 
 def _cam_of(topic: str, cams: set[str]) -> Optional[str]:
@@ -84,7 +86,7 @@ def rewrite_bag(src: Path, dst: Path, form: RigForm = RigForm(), drop: tuple[str
 
         def new_topic(topic: str) -> tuple[Optional[str], str]:
             """(new topic or None to drop, kind)."""
-            if topic == GROUND_TRUTH:
+            if topic == GROUND_TRUTH and not form.keep_ground_truth:
                 return None, ""
             cam = _cam_of(topic, cams)
             if cam is None:

@@ -400,7 +400,7 @@ class RobotModel:
             if n in index:
                 raise ValueError(f"joint state names joint '{n}' twice")
             index[n] = i
-        pos = torch.as_tensor(np.asarray(positions, dtype=np.float64) if not torch.is_tensor(positions) else positions)
+        pos = torch.as_tensor(np.array(positions, dtype=np.float64) if not torch.is_tensor(positions) else positions)
         if pos.ndim == 0 or pos.shape[-1] != len(names):
             raise ValueError(f"joint state has {len(names)} names but positions of shape {tuple(pos.shape)}")
         missing = [j for j in wanted if j not in index]

@@ -1,5 +1,5 @@
 """Recordings from other rigs: datasets without manifests, renamed / nested / compressed cameras,
-bags without masks (masks derived from geometry), and bad bags listed and skipped.
+bags without masks (masks derived from geometry), another robot, and bad bags listed and skipped.
 
 Real-rig forms are made from a reference-world bag with ``tools/rig_bags.py`` (rosbags).
 """
@@ -189,6 +189,42 @@ def test_bgr8_and_32fc1_depth_and_tf_extrinsics(world, reference, robot, tmp_pat
     assert torch.allclose(ep.depth, ref.depth, atol=1e-6)
     i = ep.camera_index("cam_front")
     assert torch.allclose(ep.cam_to_world[:, i], ref.cam_to_world[:, i], atol=1e-9)
+
+
+def test_a_bag_retargeted_to_another_robot_reads_with_that_robot_like_the_original(world, reference, tmp_path):
+    """``tools/retarget_robot.py``: the same episode as the ARX X5 (6 joints, the gripper an
+    external value in metres, no finger links) would have done it, read with ``robot=arx5``:
+    its control points follow the Panda's (centroids apart by the two jaws' shapes: 2.0 against
+    1.8 cm long, tips aligned, so 1 mm), the opening in metres and the wrist camera's pose are the
+    recorded ones, images and depth unchanged, and the bag names only the ARX's joints."""
+    from rosbags.highlevel import AnyReader
+
+    from retarget_robot import base_pose, retarget_bag
+    from soma_ros.bagtypes import typestore
+    from soma_ros.core.robot import RobotModel
+    from soma_ros.data.dataset import prepare_episode
+
+    _, ref = reference
+    panda = RobotModel.from_config("panda", dtype=torch.float64)
+    arx = RobotModel.from_config("arx5", dtype=torch.float64)
+    info = retarget_bag(world, tmp_path / "arx", panda, arx, base_pose((0.15, 0.0, 0.85, 0.0)))
+    assert info["frames"] == ref.num_frames and info["worst_mm"] < 1.0 and info["worst_deg"] < 0.5, info
+    with AnyReader([tmp_path / "arx"], default_typestore=typestore()) as r:
+        c = next(c for c in r.connections if c.topic == "/joint_states")
+        names = {n for _, _, raw in r.messages([c]) for n in r.deserialize(raw, c.msgtype).name}
+        assert not any(c.topic == "/tf" for c in r.connections)
+    assert names == set(arx.arm_joint_names) | {"gripper"}
+    ep = prepare_episode(tmp_path / "arx", arx)
+    assert torch.equal(ep.rgb, ref.rgb) and torch.equal(ep.depth, ref.depth)
+    d = (ep.control_points.mean(-2) - ref.control_points.mean(-2)).norm(dim=-1)
+    assert 0.9e-3 < float(d.min()) and float(d.max()) < 1.1e-3, (float(d.min()), float(d.max()))
+    assert torch.allclose(ep.gripper_opening.double(), ref.gripper_opening.double(), atol=1e-9)
+    assert ep.mounts["cam_wrist"][0] == "eef_link"
+    i, j = ep.camera_index("cam_wrist"), ref.camera_index("cam_wrist")
+    A, B = ep.cam_to_world[:, i].double(), ref.cam_to_world[:, j].double()
+    assert float((A[:, :3, 3] - B[:, :3, 3]).norm(dim=-1).max()) < 1e-3
+    cos = ((A[:, :3, :3].transpose(1, 2) @ B[:, :3, :3]).diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2
+    assert float(torch.rad2deg(torch.arccos(cos.clamp(-1, 1))).max()) < 0.5
 
 
 # --------------------------------------------------------------------------- masks
