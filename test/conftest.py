@@ -97,6 +97,28 @@ def sim_node_args(checkpoint, scene, *extra: str) -> list:
     return ["--ros-args", "-p", f"checkpoint:={checkpoint}", "-p", f"scene:={scene}", *extra]
 
 
+def recorded_grasp(live, bag: Path):
+    """A recorded episode's /joint_states as the live engine's joint vectors, with where its
+    gripper closes: (vectors [T] in ``live.required_joints`` order, index of the first pose
+    closed by 0.05 of the gripper state, the jaws' centre [T, 3] in the simulation frame)."""
+    import numpy as np
+    from rosbags.highlevel import AnyReader
+
+    from soma_ros.bagtypes import typestore
+
+    vecs = []
+    with AnyReader([Path(bag)], default_typestore=typestore()) as r:
+        conns = [c for c in r.connections if c.topic == "/joint_states"]
+        for c, _, raw in r.messages(connections=conns):
+            m = r.deserialize(raw, c.msgtype)
+            idx = {n: i for i, n in enumerate(m.name)}
+            vecs.append(np.array([float(m.position[idx[n]]) for n in live.required_joints]))
+    grip = [float(live.action(v).gripper) for v in vecs]
+    k_close = next(i for i, g in enumerate(grip) if g < grip[0] - 0.05)
+    tcp = np.stack([live.action(v).control_points.double().mean(0).numpy() for v in vecs])
+    return vecs, k_close, tcp
+
+
 def train_tiny_run(data: Path, run: Path, episodes: int, frames: int, seed: int = 3) -> None:
     """A tiny rope dataset (`episodes` x `frames`) and a barely trained `tiny` model on it
     (2 iterations: the mechanics of what consumes a run, not its accuracy)."""

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import ROOT, sim_node_args
+from conftest import ROOT, recorded_grasp, sim_node_args
 from soma_ros.nodes.testing import RosProcess
 
 sys.path.insert(0, str(ROOT / "tools"))
@@ -57,17 +57,6 @@ def arx_run(tmp_path_factory):
     return run / "checkpoint.pt", run / "scene", data
 
 
-def _joint_states(bag):
-    from rosbags.highlevel import AnyReader
-
-    from soma_ros.bagtypes import typestore
-
-    with AnyReader([bag], default_typestore=typestore()) as r:
-        c = next(c for c in r.connections if c.topic == "/joint_states")
-        return [(list(m.name), np.asarray(m.position, float)) for m in
-                (r.deserialize(raw, c.msgtype) for _, _, raw in r.messages([c]))]
-
-
 def test_a_model_trained_on_arx5_bags_follows_the_arx5_joint_states_in_the_node(ros_env, ros_context, arx_run):
     """The checkpoint names the ARX; the node takes its 6 joints and its gripper value, places
     the wrist camera on its ``eef_link`` and the base where the bags put it, and a recorded lift
@@ -82,13 +71,7 @@ def test_a_model_trained_on_arx5_bags_follows_the_arx5_joint_states_in_the_node(
     assert set(live.required_joints) == {"joint1", "joint2", "joint3", "joint4", "joint5", "joint6", "gripper"}
     manifest = json.loads((data / "manifest.json").read_text())
     first_train = next(e["name"] for e in manifest["episodes"] if e["split"] == "train")
-    vecs = []
-    for names, pos in _joint_states(data / first_train):
-        idx = {n: i for i, n in enumerate(names)}
-        vecs.append(np.array([pos[idx[n]] for n in live.required_joints]))
-    grip = [float(live.action(v).gripper) for v in vecs]
-    k_close = next(i for i, g in enumerate(grip) if g < grip[0] - 0.05)
-    tcp = [live.action(v).control_points.double().mean(0).numpy() for v in vecs]
+    vecs, k_close, tcp = recorded_grasp(live, data / first_train)
     lift = float(tcp[-1][2] - tcp[k_close][2])
     assert lift > 0.05, f"the recorded episode lifts by only {lift:.3f} m"
     x0 = live.snapshot()[0].means.double().numpy()

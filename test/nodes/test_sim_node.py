@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import ROOT, sim_node_args
+from conftest import ROOT, recorded_grasp, sim_node_args
 from soma_ros.nodes.testing import RosProcess
 
 SIM = "soma_ros.nodes.sim_node"
@@ -562,20 +562,6 @@ def trained_run(tmp_path_factory):
     return run / "checkpoint.pt", run / "scene", data
 
 
-def _bag_joint_states(bag: Path) -> list[tuple[list[str], np.ndarray]]:
-    from rosbags.highlevel import AnyReader
-
-    from soma_ros.bagtypes import typestore
-
-    out = []
-    with AnyReader([bag], default_typestore=typestore()) as r:
-        conns = [c for c in r.connections if c.topic == "/joint_states"]
-        for c, _, raw in r.messages(connections=conns):
-            m = r.deserialize(raw, c.msgtype)
-            out.append((list(m.name), np.asarray(m.position, dtype=np.float64)))
-    return out
-
-
 def test_trained_model_a_lift_of_the_gripper_lifts_the_grasped_part(ros_env, ros_context, trained_run):
     """The node runs the tiny trained model on its scene (the first frame of the first
     training episode); the test replays that episode's recorded /joint_states (descend,
@@ -601,14 +587,7 @@ def test_trained_model_a_lift_of_the_gripper_lifts_the_grasped_part(ros_env, ros
 
     first_train = next(e["name"] for e in json.loads((data / "manifest.json").read_text())["episodes"]
                        if e["split"] == "train")
-    js = _bag_joint_states(data / first_train)
-    vecs = []
-    for names, pos in js:
-        idx = {n: i for i, n in enumerate(names)}
-        vecs.append(np.array([pos[idx[n]] for n in live.required_joints]))
-    grip = [float(live.action(v).gripper) for v in vecs]
-    k_close = next(i for i, g in enumerate(grip) if g < grip[0] - 0.05)
-    tcp = [live.action(v).control_points.double().mean(0).numpy() for v in vecs]
+    vecs, k_close, tcp = recorded_grasp(live, data / first_train)
     lift = float(tcp[-1][2] - tcp[k_close][2])
     assert lift > 0.05, f"the recorded episode lifts by only {lift:.3f} m"
     x0 = live.snapshot()[0].means.double().numpy()
