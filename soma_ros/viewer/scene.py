@@ -89,6 +89,7 @@ class TwinView:
         self._splat_data: Optional[tuple] = None  # (means, covs, rgb, opacity) last drawn
         self._error: Optional[np.ndarray] = None
         self._robot = None
+        self._bones: dict = {}
         self._posed: Optional[tuple] = None  # the (names, positions) the robot was last posed at
         self._robot_names: list[str] = []
         self._frustums: dict = {}
@@ -176,11 +177,27 @@ class TwinView:
                 self.server.scene.add_mesh_simple(f"/robot/{name}/visual_{k}", vertices=v.astype(np.float32),
                                                   faces=f, color=(110, 115, 130), material="toon3")
             self._link_nodes[name] = node
+        with_meshes = len(self._link_nodes)
+        # a robot with no mesh to draw (none in the URDF, or the files missing): a bone from every
+        # link's parent's origin to its own, in the parent's frame, so the kinematic chain shows
+        bones: dict[str, list[np.ndarray]] = {}
+        self._bones = {}  # parent link -> its bones' LineSegmentsHandle
+        for j in self._frames.urdf.joints.values() if not with_meshes else ():
+            xyz = np.asarray(j.origin_xyz, dtype=np.float64)
+            if np.linalg.norm(xyz) > 1e-4:
+                bones.setdefault(j.parent, []).append(xyz)
+        for parent, ends in bones.items():
+            node = self._link_nodes.get(parent) or self.server.scene.add_frame(f"/robot/{parent}", show_axes=False)
+            pts = np.stack([np.stack([np.zeros(3), e]) for e in ends]).astype(np.float32)  # [S, 2, 3]
+            self._bones[parent] = self.server.scene.add_line_segments(
+                f"/robot/{parent}/bones", points=pts, colors=(110, 115, 130), thickness=0.02)
+            self._link_nodes[parent] = node
         self._robot = self._frames
         self._robot_names = []
         self._posed = None
         self.set_joints([], [])
-        print(f"soma view: robot drawn ({len(self._link_nodes)} links with meshes)", flush=True)
+        print(f"soma view: robot drawn ({with_meshes} links with meshes, {sum(map(len, bones.values()))} bones "
+              "for links without)", flush=True)
 
     def set_joints(self, names: Sequence[str], positions: Sequence[float]) -> None:
         """Pose the robot's links from a joint state (names [J], positions [J]); joints it does not

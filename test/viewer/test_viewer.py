@@ -179,3 +179,39 @@ def test_bad_inputs_are_one_line_errors(tmp_path, capsys):
         assert main(args) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("soma view: error:") and what in err[0], err
+
+
+def test_a_robot_without_meshes_is_drawn_as_its_kinematic_chain():
+    """The ARX X5's URDF ships without its mesh files: every link it cannot draw gets a bone from
+    its parent's origin to its own, in the parent's frame, and a joint state poses the bones as FK
+    poses the links (the end of the bone to ``link6`` is ``link6``'s origin)."""
+    from soma_ros.core.robot import RobotModel
+    from soma_ros.core.robot_frames import RobotFrames
+    from soma_ros.viewer.scene import TwinView
+
+    urdf = RobotModel.from_config("arx5").config.urdf
+    view = TwinView(port=0, layers=("robot",))
+    try:
+        base = np.eye(4)
+        base[:3, 3] = [0.15, 0.0, 0.85]
+        view.set_robot(urdf, base)
+        frames = RobotFrames(urdf)
+        chain = ["base_link", "link1", "link2", "link3", "link4", "link5"]
+        assert set(chain) <= set(view._link_nodes), sorted(view._link_nodes)
+        q = {"joint1": 0.4, "joint2": 1.0, "joint3": 0.8, "joint4": -0.3, "joint5": 0.5, "joint6": 0.2}
+        view.set_joints(list(q), list(q.values()))
+        poses = frames.link_poses(list(q), np.asarray(list(q.values())))
+        parent = frames.urdf.joints["joint6"].parent
+        node = view._link_nodes[parent]
+        R = np.eye(4)
+        w, x, y, z = node.wxyz
+        R[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
+        R[:3, 3] = node.position
+        bone = np.asarray(view._bones[parent].points)  # [S, 2, 3] in the parent's frame
+        assert any(np.allclose(seg[1], frames.urdf.joints["joint6"].origin_xyz, atol=1e-6) for seg in bone)
+        end = R @ np.append(frames.urdf.joints["joint6"].origin_xyz, 1.0)
+        np.testing.assert_allclose(end[:3], (base @ poses["link6"][0])[:3, 3], atol=1e-5)
+    finally:
+        view.close()
