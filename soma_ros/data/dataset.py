@@ -302,7 +302,12 @@ def episode_masks(ep: Episode, robot: RobotModel, fk_np: dict[str, np.ndarray], 
 
         T_wb = world_from_base(ep, robot.base_link, cfg.topics.world_frame)
         links = {k: T_wb[None] @ v for k, v in fk_np.items()}
-        dm = derive_masks(ep, links, load_link_meshes(robot.config.urdf, mc.robot_geometry), mc, cameras=todo)
+        try:
+            meshes = load_link_meshes(robot.config.urdf, mc.robot_geometry)
+        except FileNotFoundError as exc:
+            raise FileNotFoundError(f"{exc}; robot pixels are found from the URDF's meshes: install them where the "
+                                    "URDF points, or give the masks (mask topics in the bags, or data.masks.folder)") from None
+        dm = derive_masks(ep, links, meshes, mc, cameras=todo)
         obj, rob = dm.object_mask, dm.robot_mask
         if cached is not None:
             cached.parent.mkdir(parents=True, exist_ok=True)

@@ -274,6 +274,26 @@ def test_user_mask_folder_takes_precedence(world, robot, tmp_path):
     assert sorted(p.name for p in bag.iterdir()) == sorted(p.name for p in (tmp_path / "nomask").iterdir())
 
 
+def test_a_urdf_whose_meshes_are_missing_names_them_and_the_remedy_when_masks_must_be_derived(world, tmp_path):
+    """Robot pixels are derived from the URDF's meshes; a URDF copied without its mesh files (a
+    robot description whose meshes were not installed) gets one line that names the missing
+    file and says what to do, not a traceback and not masks from a cruder stand-in."""
+    from soma_ros.core.robot import RobotModel
+    from soma_ros.data.dataset import prepare_episode
+
+    src = ROOT / "soma_ros" / "resources" / "robots" / "franka_panda" / "panda.urdf"
+    shutil.copy(src, tmp_path / "panda.urdf")
+    yaml = (ROOT / "config" / "robots" / "panda.yaml").read_text()
+    (tmp_path / "panda.yaml").write_text(yaml.replace("urdf: franka_panda/panda.urdf", f"urdf: {tmp_path / 'panda.urdf'}"))
+    robot = RobotModel.from_config(str(tmp_path / "panda.yaml"), dtype=torch.float64)
+    bag = rewrite_bag(world, tmp_path / "nomask", RigForm(strip_masks=True))
+    with pytest.raises(FileNotFoundError) as e:
+        prepare_episode(bag, robot)
+    msg = _one_line(str(e.value))
+    assert "URDF mesh not found: package://meshes/collision/link0.obj" in msg and "data.masks.folder" in msg, msg
+    prepare_episode(world, robot)  # with the bag's own masks the meshes are not needed
+
+
 # --------------------------------------------------------------------------- bad input
 def _bad_bags(world: Path, d: Path) -> dict[str, tuple[Path, str]]:
     """{class: (bag, expected message fragment)}."""
