@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 for p in (ROOT, ROOT / "tools"):
@@ -39,6 +40,8 @@ for p in (ROOT, ROOT / "tools"):
         sys.path.insert(0, str(p))
 
 from rig_bags import RigForm, rewrite_bag  # noqa: E402
+
+from soma_ros.viewer.tf_graph import transform_to_matrix  # noqa: E402
 
 ROT_TOL_DEG = 0.5
 
@@ -57,32 +60,11 @@ def jaw_frame(robot) -> np.ndarray:
     return T
 
 
-def _pose(tr) -> np.ndarray:
-    """geometry_msgs/Transform -> [4, 4]."""
-    q = tr.rotation
-    w, x, y, z = q.w, q.x, q.y, q.z
-    T = np.eye(4)
-    T[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                 [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                 [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
-    T[:3, 3] = [tr.translation.x, tr.translation.y, tr.translation.z]
-    return T
-
-
 def _set_pose(tr, T: np.ndarray) -> None:
-    R = T[:3, :3]
-    w = math.sqrt(max(0.0, 1.0 + R[0, 0] + R[1, 1] + R[2, 2])) / 2.0
-    if w > 1e-6:
-        x, y, z = (R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w)
-    else:  # a half turn: from the largest diagonal entry
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        v = [0.0, 0.0, 0.0]
-        v[i] = math.sqrt(max(0.0, 1.0 + R[i, i] - R[j, j] - R[k, k])) / 2.0
-        v[j] = (R[j, i] + R[i, j]) / (4 * v[i])
-        v[k] = (R[k, i] + R[i, k]) / (4 * v[i])
-        w = (R[k, j] - R[j, k]) / (4 * v[i])
-        x, y, z = v
+    """Write [4, 4] into a geometry_msgs/Transform."""
+    from soma_ros.core.geometry import rotmat_to_quat
+
+    w, x, y, z = (float(v) for v in rotmat_to_quat(torch.as_tensor(T[:3, :3], dtype=torch.float64)))
     tr.rotation.w, tr.rotation.x, tr.rotation.y, tr.rotation.z = w, x, y, z
     tr.translation.x, tr.translation.y, tr.translation.z = (float(v) for v in T[:3, 3])
 
@@ -96,9 +78,7 @@ class ArmSolver:
     """Damped least squares on the robot's own FK and Jacobian, warm-started frame to frame."""
 
     def __init__(self, robot, seeds: int = 24, seed: int = 0) -> None:
-        import torch
-
-        self.robot, self.torch = robot, torch
+        self.robot = robot
         self.n_arm = len(robot.arm_joint_names)
         lo, hi = robot.joint_limits()
         self.lo, self.hi = lo.numpy()[: self.n_arm], hi.numpy()[: self.n_arm]
@@ -109,7 +89,7 @@ class ArmSolver:
     def _q_full(self, qa: np.ndarray):
         q = np.zeros((qa.shape[0], self.robot.n_joints))
         q[:, : self.n_arm] = qa
-        return self.torch.as_tensor(q, dtype=self.torch.float64)
+        return torch.as_tensor(q, dtype=torch.float64)
 
     def _solve_from(self, qa: np.ndarray, target: np.ndarray, iters: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """qa [B, n_arm] -> (q, position error m [B], rotation error deg [B])."""
@@ -141,7 +121,7 @@ class ArmSolver:
                 return qa[0], float(pe[0]), float(re[0])
         lo = np.where(np.isfinite(self.lo), self.lo, -math.pi)
         hi = np.where(np.isfinite(self.hi), self.hi, math.pi)
-        u = self.torch.rand(self.seeds, self.n_arm, generator=self.gen, dtype=self.torch.float64).numpy()
+        u = torch.rand(self.seeds, self.n_arm, generator=self.gen, dtype=torch.float64).numpy()
         starts = lo + u * (hi - lo)
         if self.q is not None:
             starts = np.concatenate([self.q[None], starts])
@@ -172,7 +152,6 @@ class Retarget:
     bag: str = ""
 
     def plan(self, bag: Path) -> dict:
-        import torch
         from rosbags.highlevel import AnyReader
 
         from soma_ros.bagtypes import typestore
@@ -185,7 +164,7 @@ class Retarget:
                 if c.topic == "/tf_static":
                     for tr in msg.transforms:
                         if tr.child_frame_id == self.source.base_link:
-                            T_wb = _pose(tr.transform)
+                            T_wb = transform_to_matrix(tr.transform)
                     continue
                 names, pos = list(msg.name), np.asarray(msg.position, float)[None]
                 q = self.source.q_from_joint_state(names, pos).to(torch.float64)
@@ -216,19 +195,18 @@ class Retarget:
             raise ValueError(f"{self.bag}: frame {worst[2]}: robot '{self.target.config.name}' cannot reach the "
                              f"recorded jaw pose (error {worst[0] * 1e3:.2f} mm, {worst[1]:.2f} deg); move its base (--base)")
         self.openings, self.frames = openings, 0
+        # the target's opening model is linear in its gripper values: every gripper joint gets one value
+        n = len(self.target.gripper_joint_names)
+        self.open_offset = float(self.target.opening_from_values(torch.zeros(n, dtype=torch.float64)))
+        self.open_slope = float(self.target.opening_from_values(torch.ones(n, dtype=torch.float64))) - self.open_offset
         return {"frames": len(jaws), "worst_mm": worst[0] * 1e3, "worst_deg": worst[1]}
 
     def _joint_state(self, msg):
-        import torch
-
         qa, open_m = self.q[self.frames], self.openings[self.frames]
         self.frames += 1
         tj = self.target.gripper_joint_names
-        # the opening model is linear in the gripper values: every gripper joint gets the same value
-        off = float(self.target.opening_from_values(torch.zeros(len(tj), dtype=torch.float64)))
-        slope = float(self.target.opening_from_values(torch.ones(len(tj), dtype=torch.float64))) - off
         lo, hi = self.target.opening_range
-        gv = [(min(max(open_m, float(lo)), float(hi)) - off) / slope] * len(tj)
+        gv = [(min(max(open_m, float(lo)), float(hi)) - self.open_offset) / self.open_slope] * len(tj)
         msg.name = list(self.target.arm_joint_names) + list(tj)
         msg.position = np.concatenate([qa, np.asarray(gv, float)])
         msg.velocity = np.zeros(0)
@@ -246,7 +224,7 @@ class Retarget:
                 if tr.header.frame_id != self.source.ee_link:
                     raise ValueError(f"{self.bag}: /tf_static mounts '{tr.child_frame_id}' on source link "
                                      f"'{tr.header.frame_id}', not on its ee link '{self.source.ee_link}'")
-                T_jaw_cam = np.linalg.inv(self.J_src) @ _pose(tr.transform)
+                T_jaw_cam = np.linalg.inv(self.J_src) @ transform_to_matrix(tr.transform)
                 tr.header.frame_id = self.target.ee_link
                 _set_pose(tr.transform, self.J_tgt @ T_jaw_cam)
         return msg
@@ -284,8 +262,6 @@ def retarget_bag(src: Path, dst: Path, source, target, base: Optional[np.ndarray
 def main(argv=None) -> int:
     import json
     import shutil
-
-    import torch
 
     from soma_ros.core.robot import RobotModel
     from soma_ros.data.sources import find_bags

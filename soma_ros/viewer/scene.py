@@ -89,7 +89,7 @@ class TwinView:
         self._splat_data: Optional[tuple] = None  # (means, covs, rgb, opacity) last drawn
         self._error: Optional[np.ndarray] = None
         self._robot = None
-        self._bones: dict = {}
+        self._bones: dict = {}  # parent link -> its bones' LineSegmentsHandle (a robot without meshes)
         self._posed: Optional[tuple] = None  # the (names, positions) the robot was last posed at
         self._robot_names: list[str] = []
         self._frustums: dict = {}
@@ -181,11 +181,12 @@ class TwinView:
         # a robot with no mesh to draw (none in the URDF, or the files missing): a bone from every
         # link's parent's origin to its own, in the parent's frame, so the kinematic chain shows
         bones: dict[str, list[np.ndarray]] = {}
-        self._bones = {}  # parent link -> its bones' LineSegmentsHandle
-        for j in self._frames.urdf.joints.values() if not with_meshes else ():
-            xyz = np.asarray(j.origin_xyz, dtype=np.float64)
-            if np.linalg.norm(xyz) > 1e-4:
-                bones.setdefault(j.parent, []).append(xyz)
+        self._bones = {}
+        if not with_meshes:
+            for j in self._frames.urdf.joints.values():
+                xyz = np.asarray(j.origin_xyz, dtype=np.float64)
+                if np.linalg.norm(xyz) > 1e-4:
+                    bones.setdefault(j.parent, []).append(xyz)
         for parent, ends in bones.items():
             node = self._link_nodes.get(parent) or self.server.scene.add_frame(f"/robot/{parent}", show_axes=False)
             pts = np.stack([np.stack([np.zeros(3), e]) for e in ends]).astype(np.float32)  # [S, 2, 3]

@@ -185,6 +185,9 @@ def test_a_robot_without_meshes_is_drawn_as_its_kinematic_chain():
     """The ARX X5's URDF ships without its mesh files: every link it cannot draw gets a bone from
     its parent's origin to its own, in the parent's frame, and a joint state poses the bones as FK
     poses the links (the end of the bone to ``link6`` is ``link6``'s origin)."""
+    import torch
+
+    from soma_ros.core.geometry import quat_to_rotmat
     from soma_ros.core.robot import RobotModel
     from soma_ros.core.robot_frames import RobotFrames
     from soma_ros.viewer.scene import TwinView
@@ -204,10 +207,7 @@ def test_a_robot_without_meshes_is_drawn_as_its_kinematic_chain():
         parent = frames.urdf.joints["joint6"].parent
         node = view._link_nodes[parent]
         R = np.eye(4)
-        w, x, y, z = node.wxyz
-        R[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
+        R[:3, :3] = quat_to_rotmat(torch.as_tensor(np.asarray(node.wxyz, np.float64))).numpy()
         R[:3, 3] = node.position
         bone = np.asarray(view._bones[parent].points)  # [S, 2, 3] in the parent's frame
         assert any(np.allclose(seg[1], frames.urdf.joints["joint6"].origin_xyz, atol=1e-6) for seg in bone)
