@@ -604,9 +604,9 @@ def test_trained_model_a_lift_of_the_gripper_lifts_the_grasped_part(ros_env, ros
             # busy machine: a node stepping slower than the stream would see the gripper jump
             p.play_stepped(vecs)
             # the first cloud after the lift's last pose (no long hold: a tiny model may keep drifting)
-            n0 = p.count[("splats",)]
-            assert p.spin_until(lambda: p.count[("splats",)] > n0, 30)
-            x = _means(p.last("splats"))
+            cloud = p.wait_for("splats", timeout=30)
+            assert cloud is not None
+            x = _means(cloud)
             st = p.last_status()
             assert node.alive() and st.joint_states_rejected == 0
     finally:
